@@ -1,0 +1,1 @@
+"""flyslam services: one thin module per process (subscribe, call `common`, publish)."""
