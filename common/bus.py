@@ -1,0 +1,388 @@
+"""The Zenoh bus layer every flyslam process stands on.
+
+- :func:`add_bus_arguments` gives every command the zenoh-python examples' flags (``--config``,
+  ``--connect``, ``--listen``, ``--cfg KEY:JSON5``) plus ``--hub`` (one endpoint to both listen on and
+  connect to, handy for tests on unique ports) and ``--robot`` (the key prefix).
+- :class:`Node` is one service's presence on the bus: its session, key prefix, a liveliness token
+  (``<robot>/health/<service>``), a heartbeat (``<robot>/status/<service>``) carrying a progress counter,
+  rates and counters, typed publishers and validating subscriptions.
+- Sensor streams use :meth:`Node.subscribe_latest` (a Zenoh RingChannel of depth 1): a slow consumer
+  gets the newest message and the skipped ones are counted from sequence gaps, never queued.
+- Streams where every message matters (odometry) use :meth:`Node.subscribe` with a callback.
+
+A malformed payload or an unknown major version is logged (rate-limited) and counted as ``rejected``;
+it never raises out of a subscription.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import zenoh
+
+from common import messages
+from common.messages import DecodeError, Heartbeat, header
+
+log = logging.getLogger("flyslam.bus")
+
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "deploy" / "zenoh" / "local.json5"
+DEFAULT_ROBOT = "rig"
+
+
+# ------------------------------------------------------------------------------ configuration
+
+
+@dataclass
+class BusOptions:
+    """Everything needed to open a session the same way in every process of a run."""
+    config: str | None = None
+    connect: list[str] = field(default_factory=list)
+    listen: list[str] = field(default_factory=list)
+    cfg: list[str] = field(default_factory=list)
+    hub: str | None = None
+    robot: str = DEFAULT_ROBOT
+
+    def to_argv(self) -> list[str]:
+        """Command-line flags that reproduce these options in a child process."""
+        argv = []
+        if self.config:
+            argv += ["--config", self.config]
+        for e in self.connect:
+            argv += ["--connect", e]
+        for e in self.listen:
+            argv += ["--listen", e]
+        for c in self.cfg:
+            argv += ["--cfg", c]
+        if self.hub:
+            argv += ["--hub", self.hub]
+        argv += ["--robot", self.robot]
+        return argv
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("Zenoh bus")
+    g.add_argument("--config", help=f"Zenoh JSON5 configuration file (default: {DEFAULT_CONFIG.relative_to(DEFAULT_CONFIG.parents[2])})")
+    g.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable; replaces the file's list)")
+    g.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable; replaces the file's list)")
+    g.add_argument("--cfg", action="append", default=[], metavar="KEY:JSON5",
+                   help="set one configuration key, e.g. --cfg 'scouting/multicast/enabled:true'")
+    g.add_argument("--hub", metavar="ENDPOINT",
+                   help="shorthand: listen on ENDPOINT (if free) and on an ephemeral port, and connect to ENDPOINT")
+    g.add_argument("--robot", default=os.environ.get("FLYSLAM_ROBOT", DEFAULT_ROBOT),
+                   help="robot name, the prefix of every key (default: %(default)s)")
+
+
+def bus_options(ns: argparse.Namespace) -> BusOptions:
+    return BusOptions(config=ns.config, connect=list(ns.connect), listen=list(ns.listen), cfg=list(ns.cfg),
+                      hub=ns.hub, robot=ns.robot)
+
+
+def make_config(opts: BusOptions) -> zenoh.Config:
+    path = Path(opts.config) if opts.config else DEFAULT_CONFIG
+    if not path.is_file():
+        raise FileNotFoundError(f"Zenoh configuration {path} not found")
+    conf = zenoh.Config.from_file(str(path))
+    if opts.hub:
+        host = opts.hub.rsplit(":", 1)[0]
+        conf.insert_json5("listen/endpoints", json.dumps([opts.hub, f"{host}:0"]))
+        conf.insert_json5("connect/endpoints", json.dumps([opts.hub]))
+        conf.insert_json5("listen/exit_on_failure", "false")
+    if opts.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(opts.connect))
+    if opts.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(opts.listen))
+    for item in opts.cfg:
+        key, sep, value = item.partition(":")
+        if not sep:
+            raise ValueError(f"--cfg expects KEY:JSON5, got {item!r}")
+        conf.insert_json5(key, value)
+    return conf
+
+
+def open_session(opts: BusOptions) -> zenoh.Session:
+    return zenoh.open(make_config(opts))
+
+
+# ----------------------------------------------------------------------------------- counters
+
+
+class Counters:
+    """Thread-safe named counters (Zenoh callbacks run on Zenoh's threads)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._values: dict[str, int] = {}
+
+    def add(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._values[name] = self._values.get(name, 0) + n
+
+    def get(self, name: str) -> int:
+        with self._lock:
+            return self._values.get(name, 0)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._values)
+
+
+class _RateLimitedLog:
+    """Log the first few occurrences of a problem, then every 100th, so a flood cannot drown the log."""
+
+    def __init__(self):
+        self._n: dict[str, int] = {}
+
+    def warn(self, kind: str, text: str) -> None:
+        n = self._n[kind] = self._n.get(kind, 0) + 1
+        if n <= 5 or n % 100 == 0:
+            log.warning("%s (%d so far)", text, n)
+
+
+# ------------------------------------------------------------------------------ subscriptions
+
+
+class LatestSubscription:
+    """Latest-value subscription: a Zenoh RingChannel of depth 1 plus validation.
+
+    :meth:`take` returns the newest valid message not yet taken (or None). Messages overwritten before
+    being taken are counted as ``skipped`` from gaps in the envelope's seq (a restart of the publisher,
+    i.e. seq going backwards, is not counted as a gap).
+    """
+
+    def __init__(self, node: "Node", key: str, expected, name: str):
+        self._node, self._expected, self.name = node, expected, name
+        self._sub = node.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+        self.received = 0
+        self.skipped = 0
+        self._last_seq: int | None = None
+
+    def take(self):
+        sample = self._sub.try_recv()
+        if sample is None:
+            return None
+        msg = self._node.decode(sample.payload.to_bytes(), self._expected, self.name)
+        if msg is None:
+            return None
+        self.received += 1
+        seq = msg.header.seq
+        if self._last_seq is not None and seq > self._last_seq + 1:
+            gap = seq - self._last_seq - 1
+            self.skipped += gap
+            self._node.counters.add(f"{self.name}_skipped", gap)
+        self._last_seq = seq
+        return msg
+
+    def wait(self, timeout: float, poll: float = 0.002):
+        """Block up to ``timeout`` seconds (or until the node stops) for the next message."""
+        deadline = time.monotonic() + timeout
+        while not self._node.stopping:
+            msg = self.take()
+            if msg is not None or time.monotonic() >= deadline:
+                return msg
+            time.sleep(poll)
+        return None
+
+    def close(self):
+        self._sub.undeclare()
+
+
+class Publisher:
+    """Typed publisher: encodes messages and stamps the envelope's seq when left at 0."""
+
+    def __init__(self, node: "Node", key: str, latched: bool = False):
+        self._node, self.key = node, key
+        self._pub = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self.seq = 0
+        self._last: bytes | None = None
+        self._queryable = None
+        if latched:
+            # Late joiners query the key and get the last message (calibration, map, targets...).
+            self._queryable = node.session.declare_queryable(key, self._answer, complete=True)
+
+    def _answer(self, query: zenoh.Query) -> None:
+        last = self._last
+        if last is not None:
+            query.reply(self.key, last)
+
+    def publish(self, msg) -> bytes:
+        self.seq += 1
+        if msg.header.seq == 0:
+            msg.header.seq = self.seq
+        payload = messages.encode(msg)
+        self._pub.put(payload)
+        if self._queryable is not None:
+            self._last = payload
+        self._node.counters.add("published")
+        return payload
+
+    def put_raw(self, payload: bytes) -> None:
+        """Publish already-encoded bytes unchanged (replay)."""
+        self._pub.put(payload)
+        if self._queryable is not None:
+            self._last = payload
+
+
+# --------------------------------------------------------------------------------------- node
+
+
+class Node:
+    """One service's presence on the bus. Use as a context manager::
+
+        with Node("evolver", opts) as node:
+            frames = node.subscribe_latest("stereo/frame", StereoFrame)
+            out = node.publisher("flies/population")
+            while not node.stopping:
+                ...
+                node.progress += 1
+    """
+
+    def __init__(self, service: str, opts: BusOptions | None = None, heartbeat_period: float = 1.0,
+                 handle_signals: bool = True):
+        self.service = service
+        self.opts = opts or BusOptions()
+        self.robot = self.opts.robot
+        self.counters = Counters()
+        self.progress = 0
+        self.state = "starting"
+        self.rates: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._heartbeat_period = heartbeat_period
+        self._bad = _RateLimitedLog()
+        self.session = open_session(self.opts)
+        self._token = self.session.liveliness().declare_token(self.key(f"health/{service}"))
+        self._status_pub = Publisher(self, self.key(f"status/{service}"))
+        self._subscriptions: list = []
+        if handle_signals and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+        self._hb_thread = threading.Thread(target=self._heartbeat_loop, name=f"{service}-heartbeat", daemon=True)
+        self._hb_thread.start()
+
+    # -------------------------------------------------------------------------------- lifecycle
+    def __enter__(self):
+        self.state = "running"
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _on_signal(self, signum, _frame):
+        log.info("%s: signal %d, stopping", self.service, signum)
+        self._stop.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def sleep(self, seconds: float) -> bool:
+        """Sleep unless asked to stop; returns False when stopping."""
+        return not self._stop.wait(seconds)
+
+    def close(self) -> None:
+        self._stop.set()
+        self.state = "stopped"
+        self._hb_thread.join(timeout=2)
+        try:
+            self._publish_heartbeat()
+            self._token.undeclare()
+            self.session.close()
+        except Exception as e:  # closing a session whose peers vanished must not mask the real exit
+            log.debug("closing session: %s", e)
+
+    # ------------------------------------------------------------------------------------- keys
+    def key(self, stream: str) -> str:
+        """Full key expression ``<robot>/<stream>``."""
+        return f"{self.robot}/{stream}"
+
+    # ---------------------------------------------------------------------------------- decoding
+    def decode(self, payload: bytes, expected, name: str):
+        """Decode and validate; count and log a rejected payload and return None."""
+        try:
+            msg = messages.decode(payload, expected)
+        except DecodeError as e:
+            self.counters.add("rejected")
+            self.counters.add(f"{name}_rejected")
+            self._bad.warn(name, f"{self.service}: rejected a message on {name}: {type(e).__name__}: {e}")
+            return None
+        self.counters.add(f"{name}_received")
+        return msg
+
+    # ----------------------------------------------------------------------------- pub / sub
+    def publisher(self, stream: str, latched: bool = False) -> Publisher:
+        return Publisher(self, self.key(stream), latched=latched)
+
+    def subscribe_latest(self, stream: str, expected) -> LatestSubscription:
+        sub = LatestSubscription(self, self.key(stream), expected, stream.replace("/", "_"))
+        self._subscriptions.append(sub)
+        return sub
+
+    def subscribe(self, stream: str, expected, callback: Callable, raw: bool = False):
+        """Callback subscription (runs on a Zenoh thread). Invalid payloads are counted, not passed on.
+
+        Exceptions raised by the callback are logged and counted as ``callback_errors`` so that one bad
+        message cannot kill the subscription. With ``raw=True`` the callback gets (key, bytes) unvalidated.
+        """
+        name = stream.replace("/", "_").replace("*", "any")
+
+        def on_sample(sample: zenoh.Sample):
+            try:
+                payload = sample.payload.to_bytes()
+                if raw:
+                    callback(str(sample.key_expr), payload)
+                    return
+                msg = self.decode(payload, expected, name)
+                if msg is not None:
+                    callback(msg)
+            except Exception as e:  # noqa: BLE001 - a service must survive any single message
+                self.counters.add("callback_errors")
+                self._bad.warn(f"cb-{name}", f"{self.service}: error handling {name}: {type(e).__name__}: {e}")
+
+        sub = self.session.declare_subscriber(self.key(stream), on_sample)
+        self._subscriptions.append(sub)
+        return sub
+
+    def query_latest(self, stream: str, expected, timeout: float = 1.0):
+        """Ask latched publishers of ``stream`` for their last message (None if nobody answers)."""
+        replies = self.session.get(self.key(stream), timeout=timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                msg = self.decode(reply.ok.payload.to_bytes(), expected, stream.replace("/", "_"))
+                if msg is not None:
+                    return msg
+        return None
+
+    # --------------------------------------------------------------------------------- heartbeat
+    def _publish_heartbeat(self) -> None:
+        hb = Heartbeat(service=self.service, pid=os.getpid(), state=self.state, progress=int(self.progress),
+                       rates={k: float(v) for k, v in self.rates.items()},
+                       counters=self.counters.snapshot(), header=header(0, time.time_ns(), ""))
+        self._status_pub.publish(hb)
+
+    def _heartbeat_loop(self) -> None:
+        last_progress, last_t = self.progress, time.monotonic()
+        while not self._stop.wait(self._heartbeat_period):
+            now = time.monotonic()
+            self.rates["progress_per_s"] = (self.progress - last_progress) / max(now - last_t, 1e-9)
+            last_progress, last_t = self.progress, now
+            try:
+                self._publish_heartbeat()
+            except Exception as e:  # the session may be closing
+                log.debug("heartbeat: %s", e)
+
+
+def setup_logging(service: str, level: str | None = None) -> None:
+    logging.basicConfig(level=(level or os.environ.get("FLYSLAM_LOG", "INFO")).upper(),
+                        format=f"%(asctime)s {service} %(levelname)s %(message)s", datefmt="%H:%M:%S")

@@ -1,0 +1,1 @@
+"""flyslam deployment: the supervisor, launch files, Zenoh configurations and the `flyslam` command."""
