@@ -1,0 +1,266 @@
+"""Recordings: flyslam messages in MCAP files.
+
+Layout of a flyslam recording:
+- one MCAP channel per Zenoh key (topic = the full key, e.g. ``rig/stereo/frame``), message encoding
+  ``msgpack``, the channel's schema named after the flyslam schema (``flyslam.StereoFrame``);
+- each message's payload is the exact bytes seen on the bus, ``log_time`` = receive time,
+  ``publish_time`` = the envelope's ``stamp_ns``;
+- chunked and zstd-compressed; metadata records ``flyslam.calibration`` (the calibration payload,
+  base64) and ``flyslam.config`` (the effective configuration of the run, JSON).
+
+:meth:`RecordingWriter.flush` closes the chunk in progress and pushes it to the OS, so
+a recorder killed with SIGKILL leaves a file readable up to its last complete chunk. The reader streams
+records in file order and, on a truncated or corrupt file, yields what it could read and then reports
+the problem (:attr:`RecordingReader.error`) instead of raising half-way.
+"""
+from __future__ import annotations
+
+import base64
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from common import messages
+
+MESSAGE_ENCODING = "msgpack"
+SCHEMA_ENCODING = "flyslam-msgpack"  # our schemas are Python dataclasses; the name identifies them
+CALIBRATION_METADATA = "flyslam.calibration"
+CONFIG_METADATA = "flyslam.config"
+
+
+class RecordingError(Exception):
+    """A recording that cannot be opened or read; the message names the file and the problem."""
+
+
+@dataclass
+class RecordedMessage:
+    key: str
+    schema: str
+    log_time_ns: int
+    publish_time_ns: int
+    payload: bytes
+
+
+# ------------------------------------------------------------------------------------- writing
+
+
+class RecordingWriter:
+    """Append flyslam payloads to an MCAP file, one channel per key."""
+
+    def __init__(self, path: str | Path, chunk_size: int = 1 << 20, compression: str = "zstd"):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
+        self._writer.start(profile="flyslam", library="flyslam")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.count = 0
+        self._closed = False
+
+    def _channel(self, key: str, schema: str) -> int:
+        ch = self._channels.get(key)
+        if ch is None:
+            sid = self._schemas.get(schema)
+            if sid is None:
+                sid = self._schemas[schema] = self._writer.register_schema(schema, SCHEMA_ENCODING, schema.encode())
+            ch = self._channels[key] = self._writer.register_channel(key, MESSAGE_ENCODING, sid)
+        return ch
+
+    def write(self, key: str, payload: bytes, log_time_ns: int, publish_time_ns: int | None = None,
+              schema: str | None = None) -> None:
+        """Write one payload. ``schema``/``publish_time_ns`` default to what the envelope says; a payload
+        whose envelope cannot be read is still recorded (schema 'unknown') so nothing is lost."""
+        if schema is None or publish_time_ns is None:
+            try:
+                obj_schema, _ = messages.peek_schema(payload)
+                stamp = _peek_stamp(payload)
+            except messages.DecodeError:
+                obj_schema, stamp = "unknown", log_time_ns
+            schema = schema or obj_schema
+            publish_time_ns = stamp if publish_time_ns is None else publish_time_ns
+        self._writer.add_message(self._channel(key, schema), log_time=int(log_time_ns), data=bytes(payload),
+                                 publish_time=int(publish_time_ns), sequence=self.count)
+        self.count += 1
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
+
+    def add_calibration(self, payload: bytes) -> None:
+        self.add_metadata(CALIBRATION_METADATA, {"payload_b64": base64.b64encode(payload).decode()})
+
+    def add_config(self, config: dict) -> None:
+        self.add_metadata(CONFIG_METADATA, {"json": json.dumps(config, sort_keys=True, default=str)})
+
+    def flush(self) -> None:
+        """Close the chunk in progress and push it to the OS (bounds what a SIGKILL can lose)."""
+        if not self._closed:
+            self._writer.flush()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._writer.finish()
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _peek_stamp(payload: bytes) -> int:
+    import msgpack
+    obj = msgpack.unpackb(payload, raw=False)
+    stamp = obj.get("stamp_ns", 0) if isinstance(obj, dict) else 0
+    return stamp if isinstance(stamp, int) else 0
+
+
+# ------------------------------------------------------------------------------------- reading
+
+
+@dataclass
+class ChannelInfo:
+    key: str
+    schema: str
+    count: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+    @property
+    def rate_hz(self) -> float:
+        if self.count < 2 or self.first_ns is None or self.last_ns == self.first_ns:
+            return 0.0
+        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+@dataclass
+class RecordingInfo:
+    path: Path
+    size_bytes: int
+    channels: dict[str, ChannelInfo] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    start_ns: int | None = None
+    end_ns: int | None = None
+    error: str | None = None
+
+    @property
+    def message_count(self) -> int:
+        return sum(c.count for c in self.channels.values())
+
+    @property
+    def duration_s(self) -> float:
+        return 0.0 if self.start_ns is None else (self.end_ns - self.start_ns) * 1e-9
+
+    def format(self) -> str:
+        lines = [f"recording  {self.path}", f"size       {self.size_bytes / 1e6:.1f} MB",
+                 f"duration   {self.duration_s:.2f} s", f"messages   {self.message_count}"]
+        if self.error:
+            lines.append(f"PROBLEM    {self.error} (everything before it is readable)")
+        lines.append("channels:")
+        width = max([len(k) for k in self.channels] + [10])
+        for key in sorted(self.channels):
+            c = self.channels[key]
+            lines.append(f"  {key:<{width}}  {c.schema:<28} {c.count:>7} msgs  {c.rate_hz:8.2f} Hz")
+        if self.metadata:
+            lines.append("metadata: " + ", ".join(sorted(self.metadata)))
+        return "\n".join(lines)
+
+
+class RecordingReader:
+    """Sequential reader that survives truncation and corruption.
+
+    Iterating :meth:`messages` yields every readable message in file order; if the file ends early or a
+    record is corrupt the iteration stops there and :attr:`error` says what happened.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise RecordingError(f"{self.path}: no such recording")
+        with open(self.path, "rb") as f:
+            magic = f.read(8)
+        if magic != b"\x89MCAP0\r\n":
+            raise RecordingError(f"{self.path}: not an MCAP file (bad magic bytes)")
+        self.error: str | None = None
+        self.metadata: dict[str, dict[str, str]] = {}
+
+    def messages(self, keys: set[str] | None = None, start_ns: int | None = None,
+                 end_ns: int | None = None) -> Iterator[RecordedMessage]:
+        self.error = None
+        channels: dict[int, Channel] = {}
+        schemas: dict[int, Schema] = {0: None}
+        ended_cleanly = False
+        with open(self.path, "rb") as f:
+            reader = StreamReader(f, skip_magic=False, validate_crcs=True)
+            records = reader.records
+            while True:
+                try:
+                    rec = next(records)
+                except StopIteration:
+                    break
+                except Exception as e:  # noqa: BLE001 - any parse failure means "the file ends here"
+                    self.error = _describe(e)
+                    return
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Metadata):
+                    self.metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Message):
+                    ch = channels.get(rec.channel_id)
+                    if ch is None:
+                        continue
+                    if keys is not None and ch.topic not in keys:
+                        continue
+                    if start_ns is not None and rec.log_time < start_ns:
+                        continue
+                    if end_ns is not None and rec.log_time > end_ns:
+                        continue
+                    sc = schemas.get(ch.schema_id)
+                    yield RecordedMessage(ch.topic, sc.name if sc else "unknown", rec.log_time,
+                                          rec.publish_time, rec.data)
+                elif type(rec).__name__ == "Footer":
+                    ended_cleanly = True
+        if not ended_cleanly and self.error is None:
+            self.error = "file ends without a footer (recorder stopped abruptly?)"
+
+    def info(self) -> RecordingInfo:
+        info = RecordingInfo(self.path, self.path.stat().st_size)
+        for m in self.messages():
+            c = info.channels.get(m.key)
+            if c is None:
+                c = info.channels[m.key] = ChannelInfo(m.key, m.schema)
+            c.count += 1
+            c.first_ns = m.log_time_ns if c.first_ns is None else min(c.first_ns, m.log_time_ns)
+            c.last_ns = m.log_time_ns if c.last_ns is None else max(c.last_ns, m.log_time_ns)
+            info.start_ns = m.log_time_ns if info.start_ns is None else min(info.start_ns, m.log_time_ns)
+            info.end_ns = m.log_time_ns if info.end_ns is None else max(info.end_ns, m.log_time_ns)
+        info.metadata = dict(self.metadata)
+        info.error = self.error
+        return info
+
+    def calibration_payload(self) -> bytes | None:
+        """The calibration stored as metadata (read the messages first, or this reads the file)."""
+        if not self.metadata:
+            for _ in self.messages():
+                pass
+        meta = self.metadata.get(CALIBRATION_METADATA)
+        return base64.b64decode(meta["payload_b64"]) if meta else None
+
+
+def _describe(e: Exception) -> str:
+    name = type(e).__name__
+    text = str(e) or "unexpected end of data"
+    if "EndOfFile" in name or "struct" in name.lower() or "unpack requires" in text:
+        return f"truncated: {text}"
+    return f"corrupt record ({name}: {text})"
