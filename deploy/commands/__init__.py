@@ -1,0 +1,1 @@
+"""Implementations of `flyslam` subcommands that are tools rather than long-running services."""

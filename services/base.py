@@ -1,0 +1,27 @@
+"""What every service process shares: argument parsing with the bus flags, logging, the Node."""
+from __future__ import annotations
+
+import argparse
+from typing import Callable
+
+from common.bus import Node, add_bus_arguments, bus_options, setup_logging
+
+
+def service_parser(name: str, description: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=f"flyslam {name}", description=description,
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    add_bus_arguments(parser)
+    return parser
+
+
+def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node, argparse.Namespace], int | None],
+                argv: list[str] | None = None) -> int:
+    """Parse arguments, open the service's Node and run ``body(node, args)`` until it returns.
+
+    SIGINT/SIGTERM set ``node.stopping``; bodies loop ``while not node.stopping`` and return to exit
+    cleanly (files closed, liveliness token withdrawn).
+    """
+    args = parser.parse_args(argv)
+    setup_logging(name, getattr(args, "log_level", None))
+    with Node(name, bus_options(args)) as node:
+        return int(body(node, args) or 0)
