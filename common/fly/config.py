@@ -1,0 +1,100 @@
+"""Configuration of the Fly algorithm evolver (one dataclass, validated on construction)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+class EvolverConfigError(ValueError):
+    """An EvolverConfig field is out of range or inconsistent with another."""
+
+
+@dataclass
+class EvolverConfig:
+    """Everything that tunes the evolver.  Defaults are the ones that reach ≥ 90 % inliers on the
+    Middlebury motorcycle pair (see tests/test_fly_accuracy.py and bench/evolver.py).
+
+    Depths are metres along the left optical axis; pixel quantities are in pixels of the calibrated
+    (rectified) images.
+    """
+    population: int = 5000
+    neighbourhood: int = 7            # N of the N×N window compared between left and right (odd, 3..15)
+    depth_min: float = 0.3            # metres; flies are drawn with 1/z uniform in [1/depth_max, 1/depth_min]
+    depth_max: float = math.inf       # metres; may be infinite (1/z down to 0)
+    mode: str = "steady"              # 'steady' | 'generational'
+    selection: str = "tournament"     # 'tournament' | 'elitist'
+    tournament_size: int = 2
+    elite_fraction: float = 0.1       # elitist ranking: parents drawn from this top fraction; elites kept
+    # Operator mix: each offspring is made by exactly one operator; the rest (1 − sum) is mutation.
+    crossover2_rate: float = 0.1      # 2-parent barycentric crossover (children on the parents' line)
+    crossover3_rate: float = 0.1      # 3-parent barycentric crossover (children in the parents' plane)
+    immigration_rate: float = 0.02    # fresh flies drawn like the initialisation
+    # Gaussian mutation in (u_left, v, disparity) space, i.e. scaled to stereo depth uncertainty.
+    mutation_sigma_px: float = 0.7    # image-plane step (pixels) of the left projection
+    mutation_sigma_disparity: float = 4.0   # initial disparity step (pixels)
+    adaptive_mutation: bool = True    # self-adaptive per-fly disparity step (log-normal, inherited)
+    mutation_sigma_disparity_min: float = 0.05
+    # Steady state: a mutated child competes with its parent (deterministic crowding) — keeps every fly
+    # in its own image niche; other children replace the loser of a reverse tournament.
+    crowding: bool = True
+    batch_fraction: float = 0.25      # steady state: offspring made per vectorised batch, as a fraction of N
+    # 2-D sharing over a grid of cells in the left image.
+    sharing_radius_px: float | None = None   # cell size; None = sqrt(W·H / population)
+    sharing_strength: float = 1.0            # 0 disables sharing
+    # Fitness = G·F / (SSD_mean + F): G a saturating gradient normaliser in [0, 1], F a floor under the
+    # mean squared difference tied to the image noise (avoids the degenerate optimum on flat patches).
+    subpixel: bool = True             # sub-pixel disparity: right window interpolated along the epipolar
+                                      # line at (nearest left pixel − exact disparity); else nearest pixels
+    subpixel_vertical: bool = False   # full bilinear sampling of both windows (slower, same disparity)
+    noise_sigma: float | None = None  # grey-level noise std; None = estimated per frame (Immerkær)
+    ssd_floor_scale: float = 2.0      # F = ssd_floor_scale · 2·σ²  (2σ² = variance of a noisy difference)
+    gradient_saturation: float = 6.0  # G = g²/(g² + (k·σ_eff)²) with g the window's RMS gradient
+    window_sigma: float | None = None # optional Gaussian weighting of the window (pixels); None = flat
+    mean_removal_px: int | None = 15  # subtract each image's local mean over this box (odd px) before
+                                      # matching: robust to exposure differences; None = raw images
+    gradient_window: int | None = None  # box (px) over which G averages gradient energy; None = N
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        def bad(msg):
+            raise EvolverConfigError(f"EvolverConfig: {msg}")
+        if int(self.population) != self.population or self.population < 4:
+            bad(f"population must be an integer ≥ 4, got {self.population}")
+        if self.neighbourhood % 2 != 1 or not 1 <= self.neighbourhood <= 15:
+            bad(f"neighbourhood must be odd in 1..15, got {self.neighbourhood}")
+        if not (self.depth_min > 0 and math.isfinite(self.depth_min)):
+            bad(f"depth_min must be positive and finite, got {self.depth_min}")
+        if not self.depth_max > self.depth_min:
+            bad(f"depth_max ({self.depth_max}) must exceed depth_min ({self.depth_min})")
+        if self.mode not in ("steady", "generational"):
+            bad(f"mode must be 'steady' or 'generational', got {self.mode!r}")
+        if self.selection not in ("tournament", "elitist"):
+            bad(f"selection must be 'tournament' or 'elitist', got {self.selection!r}")
+        if self.tournament_size < 1:
+            bad(f"tournament_size must be ≥ 1, got {self.tournament_size}")
+        if not 0 < self.elite_fraction < 1:
+            bad(f"elite_fraction must be in (0, 1), got {self.elite_fraction}")
+        rates = (self.crossover2_rate, self.crossover3_rate, self.immigration_rate)
+        if min(rates) < 0 or sum(rates) > 1:
+            bad(f"crossover and immigration rates must be ≥ 0 and sum to ≤ 1, got {rates}")
+        for name in ("mutation_sigma_px", "mutation_sigma_disparity", "mutation_sigma_disparity_min",
+                     "ssd_floor_scale", "gradient_saturation"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                bad(f"{name} must be finite and ≥ 0, got {v}")
+        if not 0 < self.batch_fraction <= 1:
+            bad(f"batch_fraction must be in (0, 1], got {self.batch_fraction}")
+        if self.sharing_radius_px is not None and not self.sharing_radius_px > 0:
+            bad(f"sharing_radius_px must be positive or None, got {self.sharing_radius_px}")
+        if self.sharing_strength < 0:
+            bad(f"sharing_strength must be ≥ 0, got {self.sharing_strength}")
+        if self.noise_sigma is not None and not self.noise_sigma > 0:
+            bad(f"noise_sigma must be positive or None, got {self.noise_sigma}")
+        for name in ("mean_removal_px", "gradient_window"):
+            v = getattr(self, name)
+            if v is not None and (int(v) != v or v < 1 or v % 2 != 1):
+                bad(f"{name} must be an odd positive integer or None, got {v}")
+        if self.window_sigma is not None and not self.window_sigma > 0:
+            bad(f"window_sigma must be positive or None, got {self.window_sigma}")

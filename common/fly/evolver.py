@@ -1,0 +1,285 @@
+"""The Fly algorithm evolver: a population of 3-D points that evolves to lie on visible surfaces.
+
+Usage (the service layer wraps exactly this)::
+
+    ev = FlyEvolver(calib, EvolverConfig(), seed=0)
+    ev.set_images(left, right)        # once per frame; re-scores the population
+    ev.step(10)                       # 10 generations; call in a loop, the population is always usable
+    ev.positions, ev.fitness          # (N, 3) float32 left-optical points, (N,) float32
+    ev.move_flies(T_new_old)          # proprioceptive fusion between frames (robot motion)
+    ev.add_fitness_term("sonar", fn, weight)   # fn(positions (N,3) float32) -> (N,) float32
+
+Steady state (default): one *generation* is N offspring (N = population size), made in vectorised
+batches of ``batch_fraction·N``.  Each offspring comes from one operator (mutation, 2- or 3-parent
+barycentric crossover, immigration).  A mutated child competes with its own parent (deterministic
+crowding: every fly keeps its image niche and refines its depth); crossover children replace the loser of
+a reverse tournament when they are fitter; immigrants replace that loser unconditionally (they are how new
+objects get noticed).  Comparisons use the shared fitness (see ``SharingGrid``).
+
+Generational: every generation builds a whole new population from selected parents; with 'elitist'
+selection the top ``elite_fraction`` survives unchanged.
+
+Population arrays are kept ordered by sharing cell (row-major over the left image), which makes
+fitness evaluation cache-friendly and lets crossover pick mates among image neighbours.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from common.camera import StereoCalibration
+from common.fly.config import EvolverConfig
+from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
+from common.fly.operators import (SharingGrid, crossover2, crossover3, mutate, project_uvd)
+from common.fly.sampling import disparity_bounds, sample_flies
+
+FitnessTerm = Callable[[np.ndarray], np.ndarray]
+
+_MUTATION, _CROSS2, _CROSS3, _IMMIGRANT = 0, 1, 2, 3
+_MATE_REACH = 4  # crossover mates are within this many places in the cell-ordered population
+
+
+class FitnessTermError(ValueError):
+    """A plug-in fitness term was malformed or returned something other than (N,) finite numbers."""
+
+
+class NoImagesError(RuntimeError):
+    """step() was called before set_images()."""
+
+
+class FlyEvolver:
+    def __init__(self, calib: StereoCalibration, config: EvolverConfig | None = None, seed: int = 0):
+        self.calib = calib
+        self.config = config = config if config is not None else EvolverConfig()
+        config.validate()
+        self.rng = np.random.default_rng(seed)
+        self._half = config.neighbourhood // 2
+        self._margin = self._half + 1.0
+        self._d_range = disparity_bounds(calib, config.depth_min, config.depth_max)
+        span = calib.width - 1 - 2 * self._margin
+        self._d_range = (max(self._d_range[0], -span), min(self._d_range[1], span))
+        self._sigma_max = max((self._d_range[1] - self._d_range[0]) / 2, config.mutation_sigma_disparity_min)
+        cell = config.sharing_radius_px or float(np.sqrt(calib.width * calib.height / config.population))
+        self.sharing = SharingGrid(calib.width, calib.height, cell, config.sharing_strength)
+        self._terms: dict[str, tuple[FitnessTerm, float]] = {}
+        self._frame: PreparedFrame | None = None
+        self.generation = 0
+        n = config.population
+        self._pos = sample_flies(calib, n, config.depth_min, config.depth_max, self.rng, self._margin)
+        self._sigma_d = np.full(n, config.mutation_sigma_disparity, np.float32)
+        self._fit = np.full(n, OUTSIDE_FITNESS, np.float32)
+        self._cells = np.full(n, -1, np.int64)
+        self._reorder()
+
+    # ------------------------------------------------------------------------------ public state
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) float32 fly positions in the left optical frame (read-only view; copy to keep)."""
+        v = self._pos.view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def fitness(self) -> np.ndarray:
+        """(N,) float32 fitness: image term in [0, 1) plus weighted plug-in terms; −inf outside an image
+        or before the first set_images()."""
+        v = self._fit.view()
+        v.flags.writeable = False
+        return v
+
+    def shared_fitness(self) -> np.ndarray:
+        """(N,) float32 fitness after 2-D sharing — what selection and replacement compare."""
+        return SharingGrid.apply(self._fit, self.sharing.factor(self._cells))
+
+    @property
+    def mutation_sigma_disparity(self) -> np.ndarray:
+        """(N,) float32 per-fly disparity mutation step (pixels), adapted when adaptive_mutation is on."""
+        return self._sigma_d.copy()
+
+    @property
+    def frame(self) -> PreparedFrame | None:
+        return self._frame
+
+    # ------------------------------------------------------------------------------- inputs
+    def set_images(self, left: np.ndarray, right: np.ndarray) -> None:
+        """Load a new rectified stereo frame (H×W×3 uint8 RGB or H×W mono) and re-score the population."""
+        c = self.config
+        self._frame = prepare_frame(self.calib, left, right, c.neighbourhood, c.noise_sigma,
+                                    c.ssd_floor_scale, c.gradient_saturation, c.window_sigma,
+                                    c.mean_removal_px, c.gradient_window)
+        self._rescore()
+
+    def move_flies(self, T_new_old: np.ndarray) -> None:
+        """Proprioceptive fusion: move every fly by the robot's motion, ``p_new = T_new_old · p_old``
+        (4×4 rigid transform between the left optical frames of two frames), then re-score."""
+        T = np.asarray(T_new_old, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"T_new_old must be a finite 4×4 matrix, got shape {T.shape}")
+        R = T[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ValueError("T_new_old must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+        with np.errstate(invalid="ignore", over="ignore"):
+            self._pos = (self._pos.astype(np.float64) @ R.T + T[:3, 3]).astype(np.float32)
+        self._rescore()
+
+    def add_fitness_term(self, name: str, fn: FitnessTerm, weight: float = 1.0) -> None:
+        """Add (or replace) a plug-in fitness term: ``fn(positions (N,3) float32) -> (N,) float32``,
+        added as ``weight · fn(positions)`` to the image fitness of every fly evaluated from now on."""
+        if not callable(fn):
+            raise FitnessTermError(f"fitness term {name!r} is not callable")
+        if not np.isfinite(weight):
+            raise FitnessTermError(f"fitness term {name!r} weight must be finite, got {weight}")
+        self._terms[str(name)] = (fn, float(weight))
+        self._rescore()
+
+    def remove_fitness_term(self, name: str) -> None:
+        if name not in self._terms:
+            raise KeyError(f"no fitness term named {name!r}; have {sorted(self._terms)}")
+        del self._terms[name]
+        self._rescore()
+
+    # ------------------------------------------------------------------------------ evaluation
+    def evaluate(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) float32 total fitness of arbitrary points on the current frame (image + plug-in terms)."""
+        if self._frame is None:
+            raise NoImagesError("no images yet: call set_images() first")
+        pos = np.ascontiguousarray(positions, dtype=np.float32)
+        fit = image_fitness(self._frame, self.calib, pos, subpixel=self.config.subpixel,
+                            vertical=self.config.subpixel_vertical)
+        for name, (fn, w) in self._terms.items():
+            t = np.asarray(fn(pos), dtype=np.float32)
+            if t.shape != (len(pos),) or not np.all(np.isfinite(t)):
+                raise FitnessTermError(
+                    f"fitness term {name!r} must return ({len(pos)},) finite values, got shape {t.shape}")
+            fit += np.float32(w) * t
+        return fit
+
+    def _rescore(self) -> None:
+        if self._frame is not None:
+            self._fit = self.evaluate(self._pos)
+        self._reorder()
+
+    def _reorder(self) -> None:
+        """Recompute sharing cells and sort the population by cell (cache locality, local mates)."""
+        u, v, _ = project_uvd(self.calib, self._pos)
+        cells = self.sharing.cells(u, v)
+        order = np.argsort(np.where(cells < 0, np.iinfo(np.int64).max, cells), kind="stable")
+        self._pos, self._fit, self._sigma_d = self._pos[order], self._fit[order], self._sigma_d[order]
+        self._cells = cells[order]
+        self.sharing.update(self._cells)
+
+    # ------------------------------------------------------------------------------- evolution
+    def step(self, n: int = 1) -> None:
+        """Run ``n`` generations on the current frame."""
+        if self._frame is None:
+            raise NoImagesError("no images yet: call set_images() first")
+        if int(n) != n or n < 0:
+            raise ValueError(f"step(n) needs a non-negative integer, got {n}")
+        for _ in range(int(n)):
+            if self.config.mode == "steady":
+                self._steady_generation()
+            else:
+                self._generational_generation()
+            self.generation += 1
+
+    def _operators(self, m: int) -> np.ndarray:
+        c = self.config
+        p = np.array([1 - c.crossover2_rate - c.crossover3_rate - c.immigration_rate,
+                      c.crossover2_rate, c.crossover3_rate, c.immigration_rate])
+        return self.rng.choice(4, size=m, p=np.clip(p, 0, 1) / p.clip(0, 1).sum())
+
+    def _select_parents(self, shared: np.ndarray, m: int) -> np.ndarray:
+        c, n = self.config, len(shared)
+        if c.selection == "tournament":
+            cand = self.rng.integers(0, n, (m, c.tournament_size))
+            return cand[np.arange(m), np.argmax(shared[cand], axis=1)]
+        k = max(1, int(round(c.elite_fraction * n)))
+        top = np.argpartition(-shared, k - 1)[:k]
+        return top[self.rng.integers(0, k, m)]
+
+    def _mates(self, parents: np.ndarray) -> np.ndarray:
+        """A mate for each parent among its neighbours in the cell-ordered population."""
+        n = len(self._pos)
+        off = self.rng.integers(1, _MATE_REACH + 1, len(parents)) * self.rng.choice((-1, 1), len(parents))
+        mate = parents + off
+        return np.where((mate < 0) | (mate >= n), parents - off, mate)
+
+    def _make_offspring(self, parents: np.ndarray, ops: np.ndarray):
+        """Children positions and disparity steps for the given parents and operators."""
+        c, rng = self.config, self.rng
+        m = len(parents)
+        child = np.empty((m, 3), np.float32)
+        sigma = self._sigma_d[parents].copy()
+        mut = ops == _MUTATION
+        if c.adaptive_mutation:
+            tau = np.float32(0.6)
+            sigma *= np.exp(tau * rng.standard_normal(m, dtype=np.float32))
+            np.clip(sigma, c.mutation_sigma_disparity_min, self._sigma_max, out=sigma)
+        if mut.any():
+            child[mut] = mutate(self.calib, self._pos[parents[mut]], c.mutation_sigma_px, sigma[mut],
+                                self._d_range, rng)
+        for op, fn in ((_CROSS2, None), (_CROSS3, None)):
+            sel = ops == op
+            if not sel.any():
+                continue
+            p1 = parents[sel]
+            m1 = self._mates(p1)
+            if op == _CROSS2:
+                child[sel] = crossover2(self._pos[p1], self._pos[m1], rng)
+            else:
+                child[sel] = crossover3(self._pos[p1], self._pos[m1], self._pos[self._mates(p1)], rng)
+        imm = ops == _IMMIGRANT
+        if imm.any():
+            child[imm] = sample_flies(self.calib, int(imm.sum()), c.depth_min, c.depth_max, rng,
+                                      self._margin)
+            sigma[imm] = c.mutation_sigma_disparity
+        return child, sigma
+
+    def _steady_generation(self) -> None:
+        c, rng = self.config, self.rng
+        n = len(self._pos)
+        batch = max(1, int(round(c.batch_fraction * n)))
+        done = 0
+        while done < n:
+            m = min(batch, n - done)
+            done += m
+            shared = self.shared_fitness()
+            ops = self._operators(m)
+            parents = self._select_parents(shared, m)
+            child, sigma = self._make_offspring(parents, ops)
+            fit = self.evaluate(child)
+            # Victims: the parent for mutated children (crowding), else the loser of a reverse tournament.
+            cand = rng.integers(0, n, (m, max(2, c.tournament_size)))
+            victims = cand[np.arange(m), np.argmin(shared[cand], axis=1)]
+            if c.crowding:
+                victims = np.where(ops == _MUTATION, parents, victims)
+            u, v, _ = project_uvd(self.calib, child)
+            cells = self.sharing.cells(u, v)
+            child_shared = SharingGrid.apply(
+                fit, self.sharing.factor(cells, extra=(cells != self._cells[victims]).astype(np.int64)))
+            accept = (child_shared >= shared[victims]) | (ops == _IMMIGRANT)
+            accept &= np.isfinite(fit) | (ops == _IMMIGRANT)
+            v_acc = victims[accept]
+            self._pos[v_acc] = child[accept]
+            self._fit[v_acc] = fit[accept]
+            self._sigma_d[v_acc] = sigma[accept]
+            self._cells[v_acc] = cells[accept]
+            self.sharing.update(self._cells)
+        self._reorder()
+
+    def _generational_generation(self) -> None:
+        c = self.config
+        n = len(self._pos)
+        shared = self.shared_fitness()
+        n_elite = int(round(c.elite_fraction * n)) if c.selection == "elitist" else 0
+        elite = np.argpartition(-shared, n_elite - 1)[:n_elite] if n_elite else np.zeros(0, np.int64)
+        m = n - n_elite
+        ops = self._operators(m)
+        parents = self._select_parents(shared, m)
+        child, sigma = self._make_offspring(parents, ops)
+        fit = self.evaluate(child)
+        self._pos = np.concatenate([self._pos[elite], child])
+        self._fit = np.concatenate([self._fit[elite], fit])
+        self._sigma_d = np.concatenate([self._sigma_d[elite], sigma])
+        self._reorder()

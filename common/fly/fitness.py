@@ -1,0 +1,233 @@
+"""Image fitness of flies: how well the N×N neighbourhoods at a fly's two projections agree.
+
+    fitness = G · F / (SSD_mean + F)
+
+* SSD_mean — mean over colours and the (optionally Gaussian-weighted) N×N window of (L − R)², sampled
+  bilinearly at the left and right projections (or at the nearest pixel when ``subpixel`` is off);
+* F — a floor tied to the image noise (``ssd_floor_scale · 2σ²``).  With only a tiny constant there,
+  flies pile up wherever the SSD is near zero (saturated or identical patches) instead of on surfaces;
+* G ∈ [0, 1) — a saturating normaliser ``g²/(g² + g_sat²)`` of the window's RMS image gradient ``g``
+  in the left image: uniform regions (where any depth matches) score low, while strong edges do not
+  dominate the ranking the way a raw gradient sum would.
+
+This is ``G / (SSD + floor)`` of the Fly-algorithm literature scaled by the constant F, so fitness lies
+in [0, 1) and plug-in terms from other sensors can be weighted against it.  Flies whose window leaves
+either image (or that are behind the camera) get ``OUTSIDE_FITNESS`` (−inf), lower than any other.
+
+The kernel is a numba ``prange`` loop over flies; ``prepare_frame`` does the per-frame work once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from common.camera import CalibrationError, StereoCalibration
+
+OUTSIDE_FITNESS = np.float32(-np.inf)
+
+
+class ImageError(ValueError):
+    """Images that cannot be used as a stereo pair (shape, dtype, size or channel mismatch)."""
+
+
+@dataclass
+class PreparedFrame:
+    """One stereo frame ready for the fitness kernel (computed once per frame by ``prepare_frame``)."""
+    left: np.ndarray        # H×W×C float32, C-contiguous
+    right: np.ndarray       # H×W×C float32
+    gradient_norm: np.ndarray  # H×W float32, G in [0, 1) for the window centred at each left pixel
+    noise_sigma: float      # grey-level noise std used for the floor
+    inv_floor: float        # 1 / F
+    weights: np.ndarray     # N×N float32 window weights, summing to 1 / C
+
+
+def _as_float_image(img: np.ndarray, which: str) -> np.ndarray:
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3):
+        raise ImageError(f"{which} image must be H×W mono or H×W×3 RGB, got shape {np.shape(img)}")
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a, dtype=np.float32)
+    if np.issubdtype(a.dtype, np.floating):
+        if not np.all(np.isfinite(a)):
+            raise ImageError(f"{which} image has non-finite values")
+        return np.ascontiguousarray(a, dtype=np.float32)
+    raise ImageError(f"{which} image must be uint8 (or float in 0..255), got {a.dtype}")
+
+
+def estimate_noise_sigma(grey: np.ndarray) -> float:
+    """Immerkær's fast noise estimate (std of additive white noise) of a grey image, in grey levels."""
+    g = np.asarray(grey, dtype=np.float32)
+    if g.shape[0] < 3 or g.shape[1] < 3:
+        raise ImageError(f"image {g.shape} too small to estimate noise")
+    m = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
+    conv = cv2.filter2D(g, cv2.CV_32F, m, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    h, w = conv.shape
+    return float(np.sqrt(np.pi / 2) * np.abs(conv).sum(dtype=np.float64) / (6.0 * h * w))
+
+
+def window_weights(n: int, channels: int, sigma: float | None) -> np.ndarray:
+    """N×N weights summing to 1/channels, so the kernel's weighted sum is a mean over window and colours."""
+    r = np.arange(n, dtype=np.float64) - n // 2
+    if sigma is None:
+        w = np.ones((n, n))
+    else:
+        g = np.exp(-0.5 * (r / sigma) ** 2)
+        w = np.outer(g, g)
+    return (w / (w.sum() * channels)).astype(np.float32)
+
+
+def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
+                  noise_sigma: float | None, ssd_floor_scale: float, gradient_saturation: float,
+                  window_sigma: float | None, mean_removal_px: int | None = None,
+                  gradient_window: int | None = None) -> PreparedFrame:
+    """Convert a stereo pair once per frame: float images, noise floor and the gradient normaliser map.
+
+    ``mean_removal_px`` (odd) subtracts each image's local mean over that box before matching, which makes
+    the SSD insensitive to exposure/gain differences between the two cameras (a cheap zero-mean SSD).
+    """
+    L, R = _as_float_image(left, "left"), _as_float_image(right, "right")
+    try:
+        calib.check_image(L, "left")
+        calib.check_image(R, "right")
+    except CalibrationError as e:
+        raise ImageError(str(e)) from e
+    if L.shape != R.shape:
+        raise ImageError(f"left {L.shape} and right {R.shape} images differ")
+    grey = L.mean(axis=2)
+    if mean_removal_px:
+        k = (int(mean_removal_px), int(mean_removal_px))
+        L = np.ascontiguousarray(L - cv2.blur(L, k, borderType=cv2.BORDER_REPLICATE).reshape(L.shape))
+        R = np.ascontiguousarray(R - cv2.blur(R, k, borderType=cv2.BORDER_REPLICATE).reshape(R.shape))
+    sigma = float(noise_sigma) if noise_sigma is not None else estimate_noise_sigma(grey)
+    sigma = max(sigma, 0.5)  # quantisation alone is ~0.3 grey levels; never trust a zero estimate
+    floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    gw = int(gradient_window or neighbourhood)
+    energy = cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (gw, gw),
+                           borderType=cv2.BORDER_REPLICATE)
+    sat2 = (gradient_saturation * sigma) ** 2
+    G = (energy / (energy + sat2)).astype(np.float32) if sat2 > 0 else np.ones_like(energy)
+    return PreparedFrame(L, R, np.ascontiguousarray(G), sigma, 1.0 / floor,
+                         window_weights(neighbourhood, L.shape[2], window_sigma))
+
+
+_BLOCK = 64  # flies per parallel work item (one scratch buffer each)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _fitness_kernel(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical, inv_floor,
+                    wexp, out):
+    """L, R: H×(W·C) float32 (rows of interleaved colours); wexp: nw×(nw·C) per-sample weights."""
+    H = L.shape[0]
+    W = L.shape[1] // C
+    n = pos.shape[0]
+    nw = 2 * half + 1
+    rowlen = nw * C
+    nblocks = (n + _BLOCK - 1) // _BLOCK
+    for b in numba.prange(nblocks):
+        # One window row after vertical interpolation: (nw + 1) columns × C, left and right.
+        lrow = np.empty(rowlen + C, dtype=np.float32)
+        rrow = np.empty(rowlen + C, dtype=np.float32)
+        for k in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
+            z = np.float64(pos[k, 2])
+            if not z > 0.0:
+                out[k] = -np.inf
+                continue
+            iz = 1.0 / z
+            ul = fx * pos[k, 0] * iz + cxl
+            ur = fx * (pos[k, 0] - baseline) * iz + cxr
+            v = fy * pos[k, 1] * iz + cy
+            if not (abs(ul) < 1e9 and abs(ur) < 1e9 and abs(v) < 1e9):
+                out[k] = -np.inf
+                continue
+            acc = np.float32(0.0)
+            if subpixel:
+                xl0 = int(np.floor(ul))
+                xr0 = int(np.floor(ur))
+                y0 = int(np.floor(v))
+                if (xl0 < half or xl0 > W - 2 - half or xr0 < half or xr0 > W - 2 - half
+                        or y0 < half or y0 > H - 2 - half):
+                    out[k] = -np.inf
+                    continue
+                ax = np.float32(ul - xl0)
+                bx = np.float32(ur - xr0)
+                ay = np.float32(v - y0)
+                ol = (xl0 - half) * C
+                orr = (xr0 - half) * C
+                if vertical:
+                    for j in range(nw):
+                        y = y0 + j - half
+                        for p in range(rowlen + C):
+                            a0 = L[y, ol + p]
+                            lrow[p] = a0 + ay * (L[y + 1, ol + p] - a0)
+                            b0 = R[y, orr + p]
+                            rrow[p] = b0 + ay * (R[y + 1, orr + p] - b0)
+                        for p in range(rowlen):
+                            d = ((lrow[p] + ax * (lrow[p + C] - lrow[p]))
+                                 - (rrow[p] + bx * (rrow[p + C] - rrow[p])))
+                            acc += wexp[j, p] * d * d
+                else:
+                    # Rectified rig: sample the left window at the nearest pixel and the right one at
+                    # the same place minus the fly's exact (sub-pixel) disparity, interpolating along
+                    # the epipolar line.  One interpolation per sample instead of four.
+                    xn = int(np.floor(ul + 0.5))
+                    xs = ur - (ul - xn)
+                    xr0 = int(np.floor(xs))
+                    if xn > W - 1 - half or xr0 < half or xr0 > W - 2 - half:
+                        out[k] = -np.inf
+                        continue
+                    bx = np.float32(xs - xr0)
+                    ol = (xn - half) * C
+                    orr = (xr0 - half) * C
+                    yr = int(np.floor(v + 0.5)) - half
+                    if yr + nw > H:
+                        out[k] = -np.inf
+                        continue
+                    for j in range(nw):
+                        y = yr + j
+                        for p in range(rowlen):
+                            b0 = R[y, orr + p]
+                            d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
+                            acc += wexp[j, p] * d * d
+                g = G[int(np.floor(v + 0.5)), int(np.floor(ul + 0.5))]
+            else:
+                xl0 = int(np.floor(ul + 0.5))
+                xr0 = int(np.floor(ur + 0.5))
+                y0 = int(np.floor(v + 0.5))
+                if (xl0 < half or xl0 > W - 1 - half or xr0 < half or xr0 > W - 1 - half
+                        or y0 < half or y0 > H - 1 - half):
+                    out[k] = -np.inf
+                    continue
+                ol = (xl0 - half) * C
+                orr = (xr0 - half) * C
+                for j in range(nw):
+                    y = y0 + j - half
+                    for p in range(rowlen):
+                        d = L[y, ol + p] - R[y, orr + p]
+                        acc += wexp[j, p] * d * d
+                g = G[y0, xl0]
+            out[k] = g / (np.float32(1.0) + acc * inv_floor)
+
+
+def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.ndarray,
+                  subpixel: bool = True, vertical: bool = False,
+                  out: np.ndarray | None = None) -> np.ndarray:
+    """(N,) float32 image fitness of (N, 3) left-optical positions on a prepared frame."""
+    pos = np.ascontiguousarray(positions, dtype=np.float32)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions must be (N, 3), got {np.shape(positions)}")
+    if out is None:
+        out = np.empty(len(pos), dtype=np.float32)
+    H, W, C = frame.left.shape
+    half = frame.weights.shape[0] // 2
+    wexp = np.ascontiguousarray(np.repeat(frame.weights, C, axis=1))
+    _fitness_kernel(frame.left.reshape(H, W * C), frame.right.reshape(H, W * C), frame.gradient_norm,
+                    pos, calib.fx, calib.fy, calib.cx_left, calib.cx_right, calib.cy, calib.baseline,
+                    half, C, bool(subpixel), bool(vertical), np.float32(frame.inv_floor), wexp, out)
+    return out
