@@ -1,0 +1,321 @@
+"""Numba kernels behind the pseudo-distance: exact field sums, the split (far/near) kernel, the
+cloud-in-cell deposit, trilinear interpolation and the near-field correction.
+
+The *field* of a population B at a point q is S_B(q) = Σⱼ w_j / (ε + |q − b_j|).  The fast evaluator
+splits the kernel K(r) = 1/(ε + r) into a smooth far part K_far (equal to K beyond a cut-off radius
+r_c, a quadratic in r² inside it, matching value and slope at r_c) and a compact near part
+K − K_far (zero beyond r_c).  The far part is convolved on a grid by FFT; the near part is summed
+exactly over B's neighbours found through a cell list of cell size r_c.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+
+# ---------------------------------------------------------------------------------------- kernels
+@njit(cache=True, inline="always")
+def k_exact(r, eps):
+    return 1.0 / (eps + r)
+
+
+@njit(cache=True, inline="always")
+def dk_exact(r, eps):
+    d = eps + r
+    return -1.0 / (d * d)
+
+
+@njit(cache=True, inline="always")
+def k_far(r, eps, rc):
+    if r >= rc:
+        return 1.0 / (eps + r)
+    d = eps + rc
+    return 1.0 / d - (r * r - rc * rc) / (2.0 * rc * d * d)
+
+
+@njit(cache=True, inline="always")
+def dk_far(r, eps, rc):
+    if r >= rc:
+        d = eps + r
+        return -1.0 / (d * d)
+    d = eps + rc
+    return -r / (rc * d * d)
+
+
+@njit(cache=True)
+def far_kernel_grid(shape0, shape1, shape2, h, eps, rc):
+    """K_far sampled on the circular offset layout of an FFT of the given shape."""
+    out = np.empty((shape0, shape1, shape2))
+    for i in range(shape0):
+        oi = i if i <= shape0 // 2 else i - shape0
+        for j in range(shape1):
+            oj = j if j <= shape1 // 2 else j - shape1
+            for k in range(shape2):
+                ok = k if k <= shape2 // 2 else k - shape2
+                r = h * np.sqrt(oi * oi + oj * oj + ok * ok)
+                out[i, j, k] = k_far(r, eps, rc)
+    return out
+
+
+# ------------------------------------------------------------------------------------- exact sums
+@njit(cache=True, parallel=True)
+def exact_field(Q, B, wb, eps):
+    """S_B and ∇S_B at every row of Q, summed over all of B (float64, parallel over Q)."""
+    n = Q.shape[0]
+    S = np.zeros(n)
+    G = np.zeros((n, 3))
+    for i in prange(n):
+        s = 0.0
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
+        qx, qy, qz = Q[i, 0], Q[i, 1], Q[i, 2]
+        for j in range(B.shape[0]):
+            dx = qx - B[j, 0]
+            dy = qy - B[j, 1]
+            dz = qz - B[j, 2]
+            r = np.sqrt(dx * dx + dy * dy + dz * dz)
+            d = eps + r
+            s += wb[j] / d
+            if r > 1e-300:
+                f = -wb[j] / (d * d * r)
+                gx += f * dx
+                gy += f * dy
+                gz += f * dz
+        S[i] = s
+        G[i, 0] = gx
+        G[i, 1] = gy
+        G[i, 2] = gz
+    return S, G
+
+
+@njit(cache=True, parallel=True)
+def exact_field_value(Q, B, wb, eps):
+    """S_B at every row of Q (value only, parallel over Q)."""
+    n = Q.shape[0]
+    S = np.zeros(n)
+    for i in prange(n):
+        s = 0.0
+        qx, qy, qz = Q[i, 0], Q[i, 1], Q[i, 2]
+        for j in range(B.shape[0]):
+            dx = qx - B[j, 0]
+            dy = qy - B[j, 1]
+            dz = qz - B[j, 2]
+            s += wb[j] / (eps + np.sqrt(dx * dx + dy * dy + dz * dz))
+        S[i] = s
+    return S
+
+
+# ----------------------------------------------------------------------------------- grid building
+@njit(cache=True)
+def cic_deposit(P, w, lo, h, shape):
+    """Cloud-in-cell (trilinear) deposit of weights w at points P onto a grid starting at lo."""
+    rho = np.zeros((shape[0], shape[1], shape[2]))
+    for j in range(P.shape[0]):
+        fx = (P[j, 0] - lo[0]) / h
+        fy = (P[j, 1] - lo[1]) / h
+        fz = (P[j, 2] - lo[2]) / h
+        ix = min(max(int(np.floor(fx)), 0), shape[0] - 2)
+        iy = min(max(int(np.floor(fy)), 0), shape[1] - 2)
+        iz = min(max(int(np.floor(fz)), 0), shape[2] - 2)
+        tx = fx - ix
+        ty = fy - iy
+        tz = fz - iz
+        for a in range(2):
+            wx = tx if a else 1.0 - tx
+            for b in range(2):
+                wy = ty if b else 1.0 - ty
+                for c in range(2):
+                    wz = tz if c else 1.0 - tz
+                    rho[ix + a, iy + b, iz + c] += w[j] * wx * wy * wz
+    return rho
+
+
+@njit(cache=True)
+def build_cells(B, lo, cell, dims):
+    """Cell list: order of B sorted by cell and the start offset of every cell (flattened, +1)."""
+    p = B.shape[0]
+    idx = np.empty(p, dtype=np.int64)
+    for j in range(p):
+        cx = min(max(int(np.floor((B[j, 0] - lo[0]) / cell)), 0), dims[0] - 1)
+        cy = min(max(int(np.floor((B[j, 1] - lo[1]) / cell)), 0), dims[1] - 1)
+        cz = min(max(int(np.floor((B[j, 2] - lo[2]) / cell)), 0), dims[2] - 1)
+        idx[j] = (cx * dims[1] + cy) * dims[2] + cz
+    order = np.argsort(idx, kind="mergesort")
+    ncell = dims[0] * dims[1] * dims[2]
+    start = np.zeros(ncell + 1, dtype=np.int64)
+    for j in range(p):
+        start[idx[j] + 1] += 1
+    for c in range(ncell):
+        start[c + 1] += start[c]
+    return order, start
+
+
+# ------------------------------------------------------------------------------------- evaluation
+@njit(cache=True)
+def _cr_weights(t):
+    """Catmull-Rom weights of nodes -1, 0, 1, 2 at fraction t, and their derivatives."""
+    t2 = t * t
+    t3 = t2 * t
+    w0 = 0.5 * (-t3 + 2.0 * t2 - t)
+    w1 = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+    w2 = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+    w3 = 0.5 * (t3 - t2)
+    d0 = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+    d1 = 0.5 * (9.0 * t2 - 10.0 * t)
+    d2 = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+    d3 = 0.5 * (3.0 * t2 - 2.0 * t)
+    return (w0, w1, w2, w3), (d0, d1, d2, d3)
+
+
+@njit(cache=True)
+def _interp(grid, lo, h, qx, qy, qz, want_grad):
+    """Tricubic (Catmull-Rom) value of `grid` at q and its analytic gradient; inside flag.
+
+    Catmull-Rom interpolates the nodes and reproduces quadratics, so unlike trilinear interpolation
+    it adds no smoothing bias, and its gradient is continuous (good for the optimiser).
+    """
+    n0, n1, n2 = grid.shape
+    fx = (qx - lo[0]) / h
+    fy = (qy - lo[1]) / h
+    fz = (qz - lo[2]) / h
+    if not (fx >= 1.0 and fy >= 1.0 and fz >= 1.0 and fx <= n0 - 2 and fy <= n1 - 2 and fz <= n2 - 2):
+        return False, 0.0, 0.0, 0.0, 0.0
+    ix = min(int(fx), n0 - 3)
+    iy = min(int(fy), n1 - 3)
+    iz = min(int(fz), n2 - 3)
+    wx, dwx = _cr_weights(fx - ix)
+    wy, dwy = _cr_weights(fy - iy)
+    wz, dwz = _cr_weights(fz - iz)
+    s = 0.0
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    for a in range(4):
+        sa = 0.0
+        ga_y = 0.0
+        ga_z = 0.0
+        for b in range(4):
+            sb = 0.0
+            gb_z = 0.0
+            for c in range(4):
+                v = grid[ix - 1 + a, iy - 1 + b, iz - 1 + c]
+                sb += wz[c] * v
+                if want_grad:
+                    gb_z += dwz[c] * v
+            sa += wy[b] * sb
+            if want_grad:
+                ga_y += dwy[b] * sb
+                ga_z += wy[b] * gb_z
+        s += wx[a] * sa
+        if want_grad:
+            gx += dwx[a] * sa
+            gy += wx[a] * ga_y
+            gz += wx[a] * ga_z
+    return True, s, gx / h, gy / h, gz / h
+
+
+@njit(cache=True)
+def _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell,
+              dims, near, want_grad):
+    """Fast S_B(q) and ∇S_B(q): far field from the grid + exact near correction.
+
+    Points outside the grid fall back to the exact sum over all of B (correct, slower).
+    """
+    inside, s, dx, dy, dz = _interp(grid, lo, h, qx, qy, qz, want_grad)
+    if not inside:
+        s = 0.0
+        dx = 0.0
+        dy = 0.0
+        dz = 0.0
+        for j in range(B.shape[0]):
+            ex = qx - B[j, 0]
+            ey = qy - B[j, 1]
+            ez = qz - B[j, 2]
+            r = np.sqrt(ex * ex + ey * ey + ez * ez)
+            d = eps + r
+            s += wb[j] / d
+            if want_grad and r > 1e-300:
+                f = -wb[j] / (d * d * r)
+                dx += f * ex
+                dy += f * ey
+                dz += f * ez
+        return s, dx, dy, dz, True
+    if near:
+        # Cell list with cell size `cell` (r_c / 2): visit only the x-y columns within r_c of q and,
+        # in each, the contiguous run of z cells spanning [qz - r_c, qz + r_c].
+        rc2 = rc * rc
+        x0 = max(int(np.floor((qx - rc - clo[0]) / cell)), 0)
+        x1 = min(int(np.floor((qx + rc - clo[0]) / cell)), dims[0] - 1)
+        y0 = max(int(np.floor((qy - rc - clo[1]) / cell)), 0)
+        y1 = min(int(np.floor((qy + rc - clo[1]) / cell)), dims[1] - 1)
+        z0 = max(int(np.floor((qz - rc - clo[2]) / cell)), 0)
+        z1 = min(int(np.floor((qz + rc - clo[2]) / cell)), dims[2] - 1)
+        if z0 <= z1:
+            for ax in range(x0, x1 + 1):
+                ddx = max(clo[0] + ax * cell - qx, qx - (clo[0] + (ax + 1) * cell), 0.0)
+                for ay in range(y0, y1 + 1):
+                    ddy = max(clo[1] + ay * cell - qy, qy - (clo[1] + (ay + 1) * cell), 0.0)
+                    if ddx * ddx + ddy * ddy >= rc2:
+                        continue
+                    base = (ax * dims[1] + ay) * dims[2]
+                    for j in range(start[base + z0], start[base + z1 + 1]):
+                        ex = qx - Bs[j, 0]
+                        ey = qy - Bs[j, 1]
+                        ez = qz - Bs[j, 2]
+                        r2 = ex * ex + ey * ey + ez * ez
+                        if r2 >= rc2:
+                            continue
+                        r = np.sqrt(r2)
+                        s += wbs[j] * (k_exact(r, eps) - k_far(r, eps, rc))
+                        if want_grad and r > 1e-300:
+                            f = wbs[j] * (dk_exact(r, eps) - dk_far(r, eps, rc)) / r
+                            dx += f * ex
+                            dy += f * ey
+                            dz += f * ez
+    return s, dx, dy, dz, False
+
+
+@njit(cache=True, parallel=True)
+def fast_field(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, near, want_grad):
+    """S_B and ∇S_B at every row of Q (parallel over Q); also how many rows fell outside the grid."""
+    n = Q.shape[0]
+    S = np.empty(n)
+    G = np.zeros((n, 3))
+    outside = np.zeros(n, dtype=np.bool_)
+    for i in prange(n):
+        s, dx, dy, dz, out = _field_at(Q[i, 0], Q[i, 1], Q[i, 2], grid, lo, h, B, wb,
+                                       eps, rc, Bs, wbs, start, clo, cell, dims, near, want_grad)
+        S[i] = s
+        G[i, 0] = dx
+        G[i, 1] = dy
+        G[i, 2] = dz
+        outside[i] = out
+    return S, G, outside.sum()
+
+
+@njit(cache=True, parallel=True)
+def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims,
+                near):
+    """Σᵢ wa_i / S_B(Rᵀ(a_i − t)) for every candidate (R, t): the un-normalised δ(A, f(B)).
+
+    Parallel over candidates; used by the coarse global search.
+    """
+    m = Rs.shape[0]
+    out = np.empty(m)
+    for k in prange(m):
+        R = Rs[k]
+        t = ts[k]
+        acc = 0.0
+        for i in range(A.shape[0]):
+            ex = A[i, 0] - t[0]
+            ey = A[i, 1] - t[1]
+            ez = A[i, 2] - t[2]
+            qx = R[0, 0] * ex + R[1, 0] * ey + R[2, 0] * ez
+            qy = R[0, 1] * ex + R[1, 1] * ey + R[2, 1] * ez
+            qz = R[0, 2] * ex + R[1, 2] * ey + R[2, 2] * ez
+            s, dx, dy, dz, o = _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc,
+                                         Bs, wbs, start, clo, cell, dims, near, False)
+            acc += wa[i] / s
+        out[k] = acc
+    return out
