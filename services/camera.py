@@ -1,0 +1,226 @@
+"""Real stereo camera (or stereo video files) as a live source: rectified frames and the calibration.
+
+Inputs, through OpenCV VideoCapture:
+- two devices or two video files: ``--left 0 --right 1`` / ``--left l.avi --right r.avi``;
+- one side-by-side device or file (left half = left camera): ``--sbs 0`` / ``--sbs pair.avi``.
+A digit string is a device index, ``/dev/...`` a device path, anything else a video file.
+
+``--calibration`` names the OpenCV stereo YAML (format in common/stereo_rectify.py; repeat the option
+to merge OpenCV's intrinsics.yml + extrinsics.yml). Rectification maps are computed once (alpha=0).
+Publishes ``<robot>/stereo/frame`` (rectified, ``--encoding`` rgb8 | mono8 | jpeg | png) stamped with the
+capture wall-clock time, and ``<robot>/stereo/calibration`` (latched, re-published every
+``--calibration-period`` s). Devices are asked for the calibrated resolution; a device, file or
+calibration that does not fit ends the process with status 2 and a one-line message saying which.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.camera import CalibrationError, StereoCalibration
+from common.images import COMPRESSED_ENCODINGS, RAW_ENCODINGS, make_frame
+from common.messages import StereoFrame, calibration_to_msg
+from common.stereo_rectify import StereoRectifier, load_calibration, split_side_by_side
+
+log = logging.getLogger("flyslam.camera")
+
+
+class CameraError(ValueError):
+    """A device or video file that cannot be opened, read, or does not fit the calibration."""
+
+
+def _quiet_opencv():
+    """Silence OpenCV's own multi-line warnings while probing devices: our message says what failed."""
+    logging_mod = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging_mod is not None:
+        logging_mod.setLogLevel(logging_mod.LOG_LEVEL_ERROR)
+
+
+def describe(spec: str) -> str:
+    return f"camera device {spec}" if spec.isdigit() or spec.startswith("/dev/") else f"video file {spec}"
+
+
+def open_capture(spec: str, size: tuple[int, int] | None = None) -> cv2.VideoCapture:
+    """VideoCapture of a device index / device path / video file; devices are asked for ``size``."""
+    is_device = spec.isdigit() or spec.startswith("/dev/")
+    if not is_device and not Path(spec).is_file():
+        raise CameraError(f"{describe(spec)} not found")
+    _quiet_opencv()
+    cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
+    if not cap.isOpened():
+        raise CameraError(f"{describe(spec)} could not be opened")
+    if is_device and size is not None:
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+    return cap
+
+
+class StereoCapture:
+    """Raw (unrectified) BGR stereo pairs from two captures or one side-by-side capture.
+
+    The first pair is read on opening, to check the image size against ``calib`` before anything is
+    published. :meth:`read` returns None at the end of the files (or rewinds with ``loop``).
+    """
+
+    def __init__(self, calib: StereoCalibration, left: str | None = None, right: str | None = None,
+                 sbs: str | None = None, loop: bool = False, calibration_name: str = "the calibration"):
+        if (sbs is None) == (left is None or right is None):
+            raise CameraError("give either --sbs, or both --left and --right")
+        self.specs = [sbs] if sbs is not None else [left, right]
+        self.side_by_side = sbs is not None
+        self.is_file = not any(s.isdigit() or s.startswith("/dev/") for s in self.specs)
+        self.loop = loop
+        w, h = calib.width, calib.height
+        want = (2 * w, h) if self.side_by_side else (w, h)
+        self.caps = []
+        try:
+            self.caps = [open_capture(s, want) for s in self.specs]
+            self.fps = self.caps[0].get(cv2.CAP_PROP_FPS) or 0.0
+            self._first = self._grab()
+            if self._first is None:
+                raise CameraError(f"{describe(self.specs[0])} gave no frame")
+            for spec, img in zip(self.specs, self._raw_images):
+                if (img.shape[1], img.shape[0]) != want:
+                    kind = "side-by-side " if self.side_by_side else ""
+                    raise CameraError(
+                        f"{describe(spec)} gives {img.shape[1]}×{img.shape[0]} frames but {calibration_name} is for "
+                        f"{kind}{want[0]}×{want[1]}")
+        except Exception:
+            self.close()
+            raise
+
+    def _grab(self):
+        # grab() all first, then retrieve(): the two sensors are sampled as close together as possible.
+        if not all(c.grab() for c in self.caps):
+            return None
+        imgs = []
+        for c in self.caps:
+            ok, img = c.retrieve()
+            if not ok or img is None:
+                return None
+            imgs.append(img)
+        self._raw_images = imgs
+        return split_side_by_side(imgs[0]) if self.side_by_side else (imgs[0], imgs[1])
+
+    def read(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Next raw (left, right) BGR pair; None at the end of the files."""
+        if self._first is not None:
+            pair, self._first = self._first, None
+            return pair
+        pair = self._grab()
+        if pair is None and self.is_file and self.loop:
+            for c in self.caps:
+                c.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            pair = self._grab()
+        if pair is None and not self.is_file:
+            raise CameraError(f"{', '.join(describe(s) for s in self.specs)}: no frame (disconnected?)")
+        return pair
+
+    def close(self) -> None:
+        for c in self.caps:
+            c.release()
+
+
+class StereoPipeline:
+    """Raw BGR pairs → rectified StereoFrames in the requested encoding (no bus: testable as is)."""
+
+    def __init__(self, calib: StereoCalibration, encoding: str = "rgb8", quality: int = 90):
+        if encoding not in RAW_ENCODINGS + COMPRESSED_ENCODINGS:
+            raise CameraError(f"unknown encoding {encoding!r} (use one of {', '.join(RAW_ENCODINGS + COMPRESSED_ENCODINGS)})")
+        self.calib = calib
+        self.rectifier = StereoRectifier(calib)
+        self.encoding, self.quality = encoding, quality
+
+    def frame(self, left_bgr: np.ndarray, right_bgr: np.ndarray, seq: int, stamp_ns: int) -> StereoFrame:
+        code = cv2.COLOR_BGR2GRAY if self.encoding == "mono8" else cv2.COLOR_BGR2RGB
+        left, right = (cv2.cvtColor(img, code) if img.ndim == 3 else img for img in (left_bgr, right_bgr))
+        if self.encoding != "mono8" and left.ndim == 2:
+            left, right = cv2.cvtColor(left, cv2.COLOR_GRAY2RGB), cv2.cvtColor(right, cv2.COLOR_GRAY2RGB)
+        left, right = self.rectifier.rectify(left, right)
+        return make_frame(left, right, seq=seq, stamp_ns=stamp_ns, encoding=self.encoding, quality=self.quality)
+
+
+# ------------------------------------------------------------------------------------------ process
+
+
+def build_parser():
+    from services.base import service_parser
+    p = service_parser("camera", __doc__.splitlines()[0])
+    src = p.add_argument_group("source")
+    src.add_argument("--left", help="left camera: device index, /dev/videoN, or video file")
+    src.add_argument("--right", help="right camera: device index, /dev/videoN, or video file")
+    src.add_argument("--sbs", help="one side-by-side device or video file (left half = left camera)")
+    src.add_argument("--calibration", "-c", action="append", required=True,
+                     help="stereo calibration YAML (repeatable: files are merged in order)")
+    src.add_argument("--units-m", type=float, default=None,
+                     help="metres per unit of T in the YAML (overrides its units_m node)")
+    src.add_argument("--fps", type=float, default=None,
+                     help="frame rate to publish at (default: the file's rate; devices: as delivered)")
+    src.add_argument("--loop", action="store_true", help="rewind video files at their end")
+    src.add_argument("--encoding", default="rgb8", choices=RAW_ENCODINGS + COMPRESSED_ENCODINGS)
+    src.add_argument("--quality", type=int, default=90, help="JPEG quality")
+    src.add_argument("--calibration-period", type=float, default=2.0,
+                     help="seconds between re-publications of the calibration")
+    return p
+
+
+def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: float | None,
+                 calibration_period: float) -> int:
+    frames = node.publisher("stereo/frame")
+    calib_pub = node.publisher("stereo/calibration", latched=True)
+    period = 1.0 / fps if fps and fps > 0 else 0.0
+    next_due = time.monotonic()
+    next_calib = 0.0
+    seq = 0
+    while not node.stopping:
+        now = time.monotonic()
+        if now >= next_calib:
+            calib_pub.publish(calibration_to_msg(pipeline.calib, stamp_ns=time.time_ns()))
+            next_calib = now + calibration_period
+        if period:
+            if now < next_due and not node.sleep(next_due - now):
+                break
+            next_due = max(next_due + period, time.monotonic())  # late: restart the clock, no burst
+        try:
+            pair = capture.read()
+        except CameraError as e:
+            log.error("%s", e)
+            return 1
+        if pair is None:
+            log.info("end of the video after %d frames", seq)
+            return 0
+        seq += 1
+        frames.publish(pipeline.frame(*pair, seq=seq, stamp_ns=time.time_ns()))
+        node.progress = seq
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from common.bus import Node, bus_options, setup_logging
+    args = build_parser().parse_args(argv)
+    setup_logging("camera")
+    try:
+        calib = load_calibration(args.calibration, args.units_m)
+        pipeline = StereoPipeline(calib, args.encoding, args.quality)
+        capture = StereoCapture(calib, args.left, args.right, args.sbs, loop=args.loop,
+                                calibration_name=f"calibration {', '.join(args.calibration)}")
+    except (CalibrationError, CameraError) as e:
+        print(f"flyslam camera: {e}", file=sys.stderr)
+        return 2
+    fps = args.fps if args.fps else (capture.fps if capture.is_file and capture.fps > 0 else None)
+    log.info("%s → %dx%d rectified, fx %.1f px, baseline %.1f mm, %s", ", ".join(capture.specs), calib.width,
+             calib.height, calib.fx, calib.baseline * 1000, f"{fps:g} fps" if fps else "device rate")
+    try:
+        with Node("camera", bus_options(args)) as node:
+            return publish_loop(node, capture, pipeline, fps, args.calibration_period)
+    finally:
+        capture.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

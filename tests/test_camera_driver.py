@@ -1,0 +1,170 @@
+"""The stereo camera driver on video files: raw distorted pairs in, the rectified truth out.
+
+The fixture renders a rectified textured scene (constant disparity), *un*-rectifies it through a known
+raw rig (distortion, a small rotation between the cameras) into two MJPG videos, and writes the rig as
+an OpenCV stereo_calib-style YAML (M1/D1/M2/D2/R/T, T in centimetres). The driver must recover the
+rectified images and the rig's calibration.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from common.geometry import rot_x, rot_y
+from common.images import frame_images
+from common.messages import StereoFrame, calibration_from_msg, calibration_to_msg, decode, encode
+from common.stereo_rectify import RawStereoRig, StereoRectifier, load_calibration, rectify_rig
+from services import camera
+
+W, H, N_FRAMES, DISPARITY = 320, 240, 5, 8
+
+
+def _rig() -> RawStereoRig:
+    K1 = np.array([[300.0, 0, 158], [0, 302, 121], [0, 0, 1]])
+    K2 = np.array([[305.0, 0, 163], [0, 304, 118], [0, 0, 1]])
+    return RawStereoRig(W, H, K1, [-0.12, 0.03, 0.001, -0.0005, 0], K2, [-0.09, 0.02, 0, 0.001, 0],
+                        rot_y(0.03) @ rot_x(-0.01), [-0.10, 0.003, 0.002])
+
+
+def _texture(seed: int, h: int, w: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w, 3)).astype(np.float32), (0, 0), 2.5)
+    img = (img - img.min()) / (img.max() - img.min()) * 230 + 10
+    return img.astype(np.uint8)
+
+
+def _truth_pairs():
+    """Rectified (left, right) RGB pairs: the texture slides 3 px per frame; right = left shifted by d."""
+    big = _texture(1, H, W + DISPARITY + 3 * N_FRAMES)
+    out = []
+    for i in range(N_FRAMES):
+        left = big[:, 3 * i: 3 * i + W]
+        right = big[:, 3 * i + DISPARITY: 3 * i + DISPARITY + W]
+        out.append((np.ascontiguousarray(left), np.ascontiguousarray(right)))
+    return out
+
+
+def _unrectify(rect: np.ndarray, rectifier: StereoRectifier, which: str) -> np.ndarray:
+    """Raw camera image whose rectification is ``rect``: look up every raw pixel's rectified position."""
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    rect_uv = rectifier.rectify_points(np.stack([u.ravel(), v.ravel()], 1), which)
+    mx = rect_uv[:, 0].reshape(H, W).astype(np.float32)
+    my = rect_uv[:, 1].reshape(H, W).astype(np.float32)
+    return cv2.remap(rect, mx, my, cv2.INTER_LINEAR)
+
+
+def _write_video(path, frames_rgb):
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (frames_rgb[0].shape[1], frames_rgb[0].shape[0]))
+    assert w.isOpened()
+    for f in frames_rgb:
+        w.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    w.release()
+
+
+def _write_opencv_yaml(path, rig: RawStereoRig, width=W, height=H, t_scale=100.0, units=True):
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", width)
+    fs.write("image_height", height)
+    for name, value in (("M1", rig.K1), ("D1", rig.D1.reshape(1, -1)), ("M2", rig.K2),
+                        ("D2", rig.D2.reshape(1, -1)), ("R", rig.R), ("T", rig.T.reshape(3, 1) * t_scale)):
+        fs.write(name, value)
+    if units:
+        fs.write("units_m", 1.0 / t_scale)
+    fs.release()
+
+
+@pytest.fixture(scope="module")
+def videos(tmp_path_factory):
+    d = tmp_path_factory.mktemp("camera")
+    rig = _rig()
+    rectifier = StereoRectifier(rectify_rig(rig))
+    truth = _truth_pairs()
+    raw_l = [_unrectify(l, rectifier, "left") for l, _ in truth]
+    raw_r = [_unrectify(r, rectifier, "right") for _, r in truth]
+    _write_video(d / "left.avi", raw_l)
+    _write_video(d / "right.avi", raw_r)
+    _write_video(d / "sbs.avi", [np.hstack([l, r]) for l, r in zip(raw_l, raw_r)])
+    _write_opencv_yaml(d / "stereo.yaml", rig)
+    return d, rig, truth
+
+
+def _interior_error(a, b, margin=10):
+    return np.abs(a.astype(float) - b.astype(float))[margin:-margin, margin:-margin].mean()
+
+
+def test_driver_recovers_rectified_frames_and_calibration(videos):
+    d, rig, truth = videos
+    calib = load_calibration(d / "stereo.yaml")
+    expected = rectify_rig(rig)
+    assert calib.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)  # T given in cm, read in m
+    assert calib.fx == pytest.approx(expected.fx) and calib.cx_left == pytest.approx(expected.cx_left)
+
+    capture = camera.StereoCapture(calib, left=str(d / "left.avi"), right=str(d / "right.avi"))
+    pipeline = camera.StereoPipeline(calib, "rgb8")
+    frames = []
+    while (pair := capture.read()) is not None:
+        frames.append(decode(encode(pipeline.frame(*pair, seq=len(frames) + 1, stamp_ns=123)), StereoFrame))
+    capture.close()
+    assert len(frames) == N_FRAMES
+    for msg, (tl, tr) in zip(frames, truth):
+        left, right = frame_images(msg)
+        assert left.shape == (H, W, 3)
+        assert _interior_error(left, tl) < 6 and _interior_error(right, tr) < 6
+    # the raw images are far from the truth: the comparison above is not trivially satisfied
+    raw = cv2.cvtColor(cv2.VideoCapture(str(d / "left.avi")).read()[1], cv2.COLOR_BGR2RGB)
+    assert _interior_error(raw, truth[0][0]) > 4 * _interior_error(frame_images(frames[0])[0], truth[0][0])
+
+    # the calibration the driver publishes survives the wire
+    back = calibration_from_msg(decode(encode(calibration_to_msg(calib)), type(calibration_to_msg(calib))))
+    assert back.fx == pytest.approx(calib.fx) and back.baseline == pytest.approx(calib.baseline)
+    assert np.allclose(back.D_left, rig.D1) and np.allclose(back.R_left, calib.R_left)
+
+
+def test_side_by_side_jpeg_and_loop(videos):
+    d, _, truth = videos
+    calib = load_calibration(d / "stereo.yaml")
+    capture = camera.StereoCapture(calib, sbs=str(d / "sbs.avi"), loop=True)
+    pipeline = camera.StereoPipeline(calib, "jpeg", quality=95)
+    pairs = [capture.read() for _ in range(N_FRAMES + 2)]  # loops past the end
+    capture.close()
+    assert all(p is not None for p in pairs)
+    left, right = frame_images(pipeline.frame(*pairs[N_FRAMES + 1], seq=1, stamp_ns=0))  # = frame 1 again
+    assert _interior_error(left, truth[1][0]) < 7 and _interior_error(right, truth[1][1]) < 7
+
+
+def _run_main(capsys, argv):
+    code = camera.main(argv)
+    err = capsys.readouterr().err
+    return code, err
+
+
+def test_wrong_resolution_is_a_clear_error(videos, tmp_path, capsys):
+    d, rig, _ = videos
+    _write_opencv_yaml(tmp_path / "vga.yaml", rig, width=640, height=480)
+    code, err = _run_main(capsys, ["--left", str(d / "left.avi"), "--right", str(d / "right.avi"),
+                                   "-c", str(tmp_path / "vga.yaml")])
+    assert code == 2
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err
+    assert str(d / "left.avi") in lines[0] and "320×240" in lines[0] and "640×480" in lines[0]
+
+
+def test_missing_file_and_unknown_units_are_clear_errors(videos, tmp_path, capsys):
+    d, rig, _ = videos
+    code, err = _run_main(capsys, ["--left", str(tmp_path / "nope.avi"), "--right", str(d / "right.avi"),
+                                   "-c", str(d / "stereo.yaml")])
+    assert code == 2 and f"video file {tmp_path / 'nope.avi'} not found" in err
+    _write_opencv_yaml(tmp_path / "squares.yaml", rig, units=False)
+    code, err = _run_main(capsys, ["--sbs", str(d / "sbs.avi"), "-c", str(tmp_path / "squares.yaml")])
+    assert code == 2 and "units_m" in err and "Traceback" not in err
+    # with --units-m the same file is accepted (T was written in centimetres)
+    calib = load_calibration(tmp_path / "squares.yaml", units_m=0.01)
+    assert calib.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
+
+
+def test_swapped_cameras_are_refused(videos, tmp_path):
+    d, rig, _ = videos
+    swapped = RawStereoRig(W, H, rig.K2, rig.D2, rig.K1, rig.D1, rig.R.T, -rig.R.T @ rig.T)
+    with pytest.raises(ValueError, match="swap the left and right"):
+        rectify_rig(swapped)
