@@ -199,9 +199,12 @@ class LatestSubscription:
 class Publisher:
     """Typed publisher: encodes messages and stamps the envelope's seq when left at 0."""
 
-    def __init__(self, node: "Node", key: str, latched: bool = False):
+    def __init__(self, node: "Node", key: str, latched: bool = False, reliable: bool = False):
         self._node, self.key = node, key
-        self._pub = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        # Live sensor data may be dropped under congestion (the newest frame matters); a replay or a
+        # command stream blocks instead so that nothing is lost.
+        congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+        self._pub = node.session.declare_publisher(key, congestion_control=congestion)
         self.seq = 0
         self._last: bytes | None = None
         self._queryable = None
@@ -321,8 +324,8 @@ class Node:
         return msg
 
     # ----------------------------------------------------------------------------- pub / sub
-    def publisher(self, stream: str, latched: bool = False) -> Publisher:
-        return Publisher(self, self.key(stream), latched=latched)
+    def publisher(self, stream: str, latched: bool = False, reliable: bool = False) -> Publisher:
+        return Publisher(self, self.key(stream), latched=latched, reliable=reliable)
 
     def subscribe_latest(self, stream: str, expected) -> LatestSubscription:
         sub = LatestSubscription(self, self.key(stream), expected, stream.replace("/", "_"))

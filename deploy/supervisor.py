@@ -1,0 +1,370 @@
+"""`flyslam run`: start the services of a launch file as OS processes and supervise them.
+
+A launch file (TOML, see ``deploy/launch/``) lists services in start order::
+
+    [run]
+    duration_s = 30                 # default bound; --duration overrides, 0 = until Ctrl-C
+    [[service]]
+    name = "recorder"
+    module = "services.recorder"    # started as: python -m <module> <args> <bus flags>
+    args = ["--out", "{out}/recording.mcap"]
+    restart = "on-failure"          # never | on-failure | always
+    max_restarts = 3                # then the service has given up
+    backoff_s = 0.5                 # first restart delay, doubled on each restart (max 30 s)
+    required = true                 # a required service that gives up fails the run
+    ends_run = false                # when it exits 0, the whole run stops (e.g. a replay that finished)
+    liveliness_timeout_s = 20       # alive process without a liveliness token this long = hung, restarted
+    stop_timeout_s = 10             # SIGTERM, then SIGKILL after this long
+
+``{out}``, ``{root}`` and ``{recordings}`` are substituted in args, and so are the launch file's own
+``[vars]`` (defaults) as overridden by ``--var NAME=VALUE`` on the command line. Services stop in the reverse of start
+order (so list the recorder first: it stops last and records everything). The supervisor opens its own
+bus session first (it becomes the local hub), watches every service's liveliness token and heartbeat,
+and writes ``run.json`` and per-service logs under ``--out``. Children get PR_SET_PDEATHSIG so that even a
+SIGKILLed supervisor leaves no orphan. Exit status: 0, or 1 when a required service gave up.
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from common.bus import Node, add_bus_arguments, bus_options, setup_logging
+from common.messages import DecodeError, Heartbeat, decode
+
+log = logging.getLogger("flyslam.supervisor")
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_LAUNCH = ROOT / "deploy" / "launch" / "demo.toml"
+RESTART_POLICIES = ("never", "on-failure", "always")
+
+
+class LaunchError(ValueError):
+    """A launch file that cannot be used; the message names the file and the field."""
+
+
+@dataclass
+class ServiceSpec:
+    name: str
+    module: str
+    args: list[str] = field(default_factory=list)
+    restart: str = "on-failure"
+    max_restarts: int = 3
+    backoff_s: float = 0.5
+    required: bool = True
+    ends_run: bool = False
+    liveliness_timeout_s: float = 20.0
+    stop_timeout_s: float = 10.0
+    start_delay_s: float = 0.0
+
+
+@dataclass
+class LaunchFile:
+    path: Path
+    duration_s: float
+    services: list[ServiceSpec]
+    robot: str | None = None
+    vars: dict[str, str] = field(default_factory=dict)
+
+
+def load_launch(path: Path) -> LaunchFile:
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise LaunchError(f"{path}: launch file not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise LaunchError(f"{path}: not valid TOML ({e})") from None
+    run = data.get("run", {})
+    services = []
+    known = set(ServiceSpec.__dataclass_fields__)
+    for i, raw in enumerate(data.get("service", [])):
+        where = f"{path}: service #{i + 1}"
+        unknown = set(raw) - known
+        if unknown:
+            raise LaunchError(f"{where}: unknown field(s) {', '.join(sorted(unknown))}")
+        for req in ("name", "module"):
+            if req not in raw:
+                raise LaunchError(f"{where}: missing '{req}'")
+        spec = ServiceSpec(**raw)
+        if spec.restart not in RESTART_POLICIES:
+            raise LaunchError(f"{where} ({spec.name}): restart must be one of {RESTART_POLICIES}, got {spec.restart!r}")
+        if not isinstance(spec.args, list) or not all(isinstance(a, str) for a in spec.args):
+            raise LaunchError(f"{where} ({spec.name}): args must be a list of strings")
+        services.append(spec)
+    if not services:
+        raise LaunchError(f"{path}: no [[service]] entries")
+    names = [s.name for s in services]
+    if len(set(names)) != len(names):
+        raise LaunchError(f"{path}: service names must be unique, got {names}")
+    variables = {str(k): str(v) for k, v in data.get("vars", {}).items()}
+    return LaunchFile(Path(path), float(run.get("duration_s", 0)), services, run.get("robot"), variables)
+
+
+# ----------------------------------------------------------------------------------- children
+
+
+def _die_with_parent():
+    """Runs in the child before exec: get SIGTERM if the supervisor dies, whatever killed it."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+    os.setpgrp()  # own process group: a terminal's Ctrl-C reaches the supervisor, which stops us in order
+
+
+@dataclass
+class Child:
+    spec: ServiceSpec
+    argv: list[str]
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    state: str = "pending"  # pending, running, backoff, finished, failed, gave-up, stopped
+    exit_codes: list[int] = field(default_factory=list)
+    next_start: float = 0.0
+    started_at: float = 0.0
+    alive_token: bool = False
+    token_lost_at: float | None = None
+    last_heartbeat: dict = field(default_factory=dict)
+
+    def start(self, env: dict) -> None:
+        with open(self.log_path, "ab") as logf:
+            logf.write(f"\n=== start #{self.restarts + 1} at {time.strftime('%H:%M:%S')}: {' '.join(self.argv)}\n".encode())
+            self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT, env=env,
+                                         preexec_fn=_die_with_parent, cwd=ROOT)
+        self.state, self.started_at = "running", time.monotonic()
+        self.token_lost_at = None
+
+    def terminate(self, timeout: float) -> int | None:
+        if self.proc is None or self.proc.poll() is not None:
+            return None if self.proc is None else self.proc.returncode
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            log.warning("%s did not stop within %.0f s, killing it", self.spec.name, timeout)
+            self.proc.kill()
+            return self.proc.wait()
+
+
+class Supervisor:
+    def __init__(self, launch: LaunchFile, out: Path, bus_opts, duration_s: float | None):
+        self.launch, self.out, self.bus_opts = launch, out, bus_opts
+        self.duration_s = launch.duration_s if duration_s is None else duration_s
+        self.children: list[Child] = []
+        self.failed_required: list[str] = []
+        self.stop_reason = ""
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+
+    def _substitute(self, arg: str) -> str:
+        base = {"out": self.out, "root": ROOT, "recordings": ROOT / "recordings"}
+        variables = {k: v.format(**base) for k, v in self.launch.vars.items()}
+        return arg.format(**variables, **base)
+
+    def prepare(self) -> None:
+        (self.out / "logs").mkdir(parents=True, exist_ok=True)
+        bus_argv = self.bus_opts.to_argv()
+        for spec in self.launch.services:
+            try:
+                args = [self._substitute(a) for a in spec.args]
+            except (KeyError, IndexError) as e:
+                raise LaunchError(f"{self.launch.path}: {spec.name}: unknown placeholder {e} in args") from None
+            argv = [sys.executable, "-m", spec.module, *args, *bus_argv]
+            self.children.append(Child(spec, argv, self.out / "logs" / f"{spec.name}.log"))
+        config = {"launch": str(self.launch.path), "duration_s": self.duration_s, "out": str(self.out),
+                  "bus": asdict(self.bus_opts),
+                  "services": [{**asdict(c.spec), "argv": c.argv} for c in self.children]}
+        (self.out / "run_config.json").write_text(json.dumps(config, indent=2))
+
+    # ------------------------------------------------------------------------------- bus watch
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            for c in self.children:
+                if c.spec.name == name:
+                    alive = sample.kind == zenoh.SampleKind.PUT
+                    c.alive_token = alive
+                    c.token_lost_at = None if alive else time.monotonic()
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        try:
+            hb = decode(sample.payload.to_bytes(), Heartbeat)
+        except DecodeError:
+            return
+        with self._lock:
+            for c in self.children:
+                if c.spec.name == hb.service:
+                    c.last_heartbeat = {"progress": hb.progress, "rates": hb.rates, "counters": hb.counters}
+
+    # ----------------------------------------------------------------------------------- loop
+    def request_stop(self, reason: str) -> None:
+        if not self._stop.is_set():
+            self.stop_reason = reason
+            self._stop.set()
+
+    def run(self, node: Node) -> int:
+        robot = node.robot
+        node.session.liveliness().declare_subscriber(f"{robot}/health/*", self._on_liveliness, history=True)
+        node.session.declare_subscriber(f"{robot}/status/*", self._on_status)
+        env = dict(os.environ, PYTHONUNBUFFERED="1", FLYSLAM_RUN_DIR=str(self.out))
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+        t_start = time.monotonic()
+        for c in self.children:
+            if self._stop.is_set():
+                break
+            log.info("starting %s", c.spec.name)
+            c.start(env)
+            if c.spec.start_delay_s:
+                self._stop.wait(c.spec.start_delay_s)
+        while not self._stop.wait(0.1):
+            node.progress += 1
+            if self.duration_s and time.monotonic() - t_start >= self.duration_s:
+                self.request_stop(f"duration of {self.duration_s:g} s reached")
+                break
+            self._tick(env)
+        self.shutdown()
+        return 1 if self.failed_required else 0
+
+    def _tick(self, env: dict) -> None:
+        now = time.monotonic()
+        for c in self.children:
+            if c.state == "running":
+                rc = c.proc.poll()
+                if rc is None:
+                    self._check_liveliness(c, now)
+                    continue
+                c.exit_codes.append(rc)
+                self._on_exit(c, rc, now)
+            elif c.state == "backoff" and now >= c.next_start:
+                c.restarts += 1
+                log.info("restarting %s (restart %d of %d)", c.spec.name, c.restarts, c.spec.max_restarts)
+                c.start(env)
+
+    def _check_liveliness(self, c: Child, now: float) -> None:
+        timeout = c.spec.liveliness_timeout_s
+        if timeout <= 0:
+            return
+        with self._lock:
+            missing_since = c.token_lost_at if c.token_lost_at is not None else (None if c.alive_token else c.started_at)
+        if missing_since is not None and now - missing_since > timeout:
+            log.warning("%s has had no liveliness token for %.0f s while its process runs: killing it as hung",
+                        c.spec.name, now - missing_since)
+            c.proc.kill()
+
+    def _on_exit(self, c: Child, rc: int, now: float) -> None:
+        spec = c.spec
+        if self._stop.is_set():
+            c.state = "stopped"
+            return
+        if rc == 0 and spec.restart != "always":
+            c.state = "finished"
+            log.info("%s finished", spec.name)
+            if spec.ends_run:
+                self.request_stop(f"{spec.name} finished")
+            return
+        how = f"exited with status {rc}" if rc >= 0 else f"was killed by signal {-rc}"
+        if spec.restart == "never" or c.restarts >= spec.max_restarts:
+            c.state = "gave-up" if spec.restart != "never" else "failed"
+            log.error("%s %s; %s", spec.name, how,
+                      "no restarts allowed" if spec.restart == "never" else f"gave up after {c.restarts} restarts")
+            if spec.required:
+                self.failed_required.append(spec.name)
+                self.request_stop(f"required service {spec.name} failed")
+            return
+        delay = min(spec.backoff_s * (2 ** c.restarts), 30.0)
+        log.warning("%s %s; restarting in %.1f s (see %s)", spec.name, how, delay, c.log_path)
+        c.state, c.next_start = "backoff", now + delay
+
+    def shutdown(self) -> None:
+        log.info("stopping (%s)", self.stop_reason or "requested")
+        for c in reversed(self.children):
+            if c.proc is not None and c.proc.poll() is None:
+                rc = c.terminate(c.spec.stop_timeout_s)
+                c.exit_codes.append(rc)
+                c.state = "stopped"
+            elif c.state in ("backoff", "pending"):
+                c.state = "stopped"
+
+    def summary(self) -> dict:
+        return {"stop_reason": self.stop_reason, "failed_required": self.failed_required,
+                "services": {c.spec.name: {"state": c.state, "restarts": c.restarts, "exit_codes": c.exit_codes,
+                                           "log": str(c.log_path), **c.last_heartbeat}
+                             for c in self.children}}
+
+
+def format_summary(summary: dict) -> str:
+    lines = [f"run stopped: {summary['stop_reason']}", "",
+             f"  {'service':<12} {'state':<9} {'restarts':>8} {'progress':>9}  exit codes"]
+    for name, s in summary["services"].items():
+        lines.append(f"  {name:<12} {s['state']:<9} {s['restarts']:>8} {s.get('progress', '-'):>9}  "
+                     f"{','.join(str(x) for x in s['exit_codes']) or '-'}")
+    if summary["failed_required"]:
+        lines.append(f"\nFAILED: required service(s) gave up: {', '.join(summary['failed_required'])}")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="flyslam run", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("launch", nargs="?", default=str(DEFAULT_LAUNCH), help="launch file (TOML)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (0 = run until Ctrl-C); default: the launch file's")
+    p.add_argument("--out", default=None, help="folder for everything the run writes (default: runs/<date-time>)")
+    p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE",
+                   help="set a launch-file variable used as {NAME} in service args")
+    add_bus_arguments(p)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging("supervisor")
+    try:
+        launch = load_launch(Path(args.launch))
+    except LaunchError as e:
+        print(f"flyslam run: {e}", file=sys.stderr)
+        return 2
+    for item in args.var:
+        name, sep, value = item.partition("=")
+        if not sep:
+            print(f"flyslam run: --var expects NAME=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        launch.vars[name] = value
+    out = Path(args.out) if args.out else ROOT / "runs" / time.strftime("%Y%m%d-%H%M%S")
+    opts = bus_options(args)
+    if launch.robot and args.robot == "rig":
+        opts.robot = launch.robot
+    sup = Supervisor(launch, out.resolve(), opts, args.duration)
+    try:
+        sup.prepare()
+    except LaunchError as e:
+        print(f"flyslam run: {e}", file=sys.stderr)
+        return 2
+    with Node("supervisor", opts, handle_signals=False) as node:
+        def on_signal(signum, _frame):
+            sup.request_stop(f"signal {signal.Signals(signum).name}")
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+        status = sup.run(node)
+    summary = sup.summary()
+    (out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
+    print(format_summary(summary))
+    print(f"\noutput: {out}")
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
