@@ -49,10 +49,12 @@ class EvolverConfig:
     noise_sigma: float | None = None  # grey-level noise std; None = estimated per frame (Immerkær)
     ssd_floor_scale: float = 2.0      # F = ssd_floor_scale · 2·σ²  (2σ² = variance of a noisy difference)
     gradient_saturation: float = 6.0  # G = g²/(g² + (k·σ_eff)²) with g the window's RMS gradient
-    window_sigma: float | None = None # optional Gaussian weighting of the window (pixels); None = flat
+    window_sigma: float | None = 1.2  # Gaussian weighting of the window (px), favours the centre
+                                      # (thin structures, depth edges); None = flat
     mean_removal_px: int | None = 15  # subtract each image's local mean over this box (odd px) before
                                       # matching: robust to exposure differences; None = raw images
     gradient_window: int | None = None  # box (px) over which G averages gradient energy; None = N
+    gradient_min_half: bool = True    # G from the least textured half-window (see fitness.gradient_energy)
 
     def __post_init__(self):
         self.validate()

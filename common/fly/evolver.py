@@ -107,7 +107,7 @@ class FlyEvolver:
         c = self.config
         self._frame = prepare_frame(self.calib, left, right, c.neighbourhood, c.noise_sigma,
                                     c.ssd_floor_scale, c.gradient_saturation, c.window_sigma,
-                                    c.mean_removal_px, c.gradient_window)
+                                    c.mean_removal_px, c.gradient_window, c.gradient_min_half)
         self._rescore()
 
     def move_flies(self, T_new_old: np.ndarray) -> None:
@@ -156,9 +156,12 @@ class FlyEvolver:
         return fit
 
     def _rescore(self) -> None:
+        """Re-evaluate every fly (new frame, moved flies, new terms); fly order is kept."""
         if self._frame is not None:
             self._fit = self.evaluate(self._pos)
-        self._reorder()
+        u, v, _ = project_uvd(self.calib, self._pos)
+        self._cells = self.sharing.cells(u, v)
+        self.sharing.update(self._cells)
 
     def _reorder(self) -> None:
         """Recompute sharing cells and sort the population by cell (cache locality, local mates)."""

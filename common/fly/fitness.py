@@ -42,6 +42,7 @@ class PreparedFrame:
     noise_sigma: float      # grey-level noise std used for the floor
     inv_floor: float        # 1 / F
     weights: np.ndarray     # N×N float32 window weights, summing to 1 / C
+    guide: np.ndarray       # H×W float32 left grey image (before mean removal), for adaptive support
 
 
 def _as_float_image(img: np.ndarray, which: str) -> np.ndarray:
@@ -59,15 +60,18 @@ def _as_float_image(img: np.ndarray, which: str) -> np.ndarray:
     raise ImageError(f"{which} image must be uint8 (or float in 0..255), got {a.dtype}")
 
 
-def estimate_noise_sigma(grey: np.ndarray) -> float:
-    """Immerkær's fast noise estimate (std of additive white noise) of a grey image, in grey levels."""
+def estimate_noise_sigma(grey: np.ndarray, flat_fraction: float = 0.3) -> float:
+    """Noise std (grey levels) of a grey image: Immerkær's Laplacian-difference estimator restricted to
+    the ``flat_fraction`` of pixels with the weakest gradient, so texture is not mistaken for noise."""
     g = np.asarray(grey, dtype=np.float32)
     if g.shape[0] < 3 or g.shape[1] < 3:
         raise ImageError(f"image {g.shape} too small to estimate noise")
     m = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
-    conv = cv2.filter2D(g, cv2.CV_32F, m, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
-    h, w = conv.shape
-    return float(np.sqrt(np.pi / 2) * np.abs(conv).sum(dtype=np.float64) / (6.0 * h * w))
+    conv = np.abs(cv2.filter2D(g, cv2.CV_32F, m, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1])
+    grad = (np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)))
+    grad = grad[1:-1, 1:-1]
+    flat = grad <= np.quantile(grad, flat_fraction)
+    return float(np.sqrt(np.pi / 2) * conv[flat].mean(dtype=np.float64) / 6.0)
 
 
 def window_weights(n: int, channels: int, sigma: float | None) -> np.ndarray:
@@ -81,10 +85,29 @@ def window_weights(n: int, channels: int, sigma: float | None) -> np.ndarray:
     return (w / (w.sum() * channels)).astype(np.float32)
 
 
+def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.ndarray:
+    """Mean squared gradient over the n×n window at each pixel — or, with ``min_half_window``, the least
+    of the four half-windows (left, right, top, bottom; each including the centre line).
+
+    The half-window minimum is what makes G well-behaved at depth edges: a window whose texture is all
+    on one side (a strong foreground edge beside a flat background) is the one that a fly at the wrong
+    depth matches well, and it gets a low G instead of the highest.
+    """
+    b = cv2.BORDER_REPLICATE
+    if not min_half_window or n < 3:
+        return cv2.boxFilter(sq_grad, cv2.CV_32F, (n, n), borderType=b)
+    h = n // 2
+    halves = [cv2.boxFilter(sq_grad, cv2.CV_32F, (h + 1, n), anchor=(h, h), borderType=b),  # left
+              cv2.boxFilter(sq_grad, cv2.CV_32F, (h + 1, n), anchor=(0, h), borderType=b),  # right
+              cv2.boxFilter(sq_grad, cv2.CV_32F, (n, h + 1), anchor=(h, h), borderType=b),  # top
+              cv2.boxFilter(sq_grad, cv2.CV_32F, (n, h + 1), anchor=(h, 0), borderType=b)]  # bottom
+    return np.minimum(np.minimum(halves[0], halves[1]), np.minimum(halves[2], halves[3]))
+
+
 def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
                   noise_sigma: float | None, ssd_floor_scale: float, gradient_saturation: float,
                   window_sigma: float | None, mean_removal_px: int | None = None,
-                  gradient_window: int | None = None) -> PreparedFrame:
+                  gradient_window: int | None = None, min_half_window: bool = True) -> PreparedFrame:
     """Convert a stereo pair once per frame: float images, noise floor and the gradient normaliser map.
 
     ``mean_removal_px`` (odd) subtracts each image's local mean over that box before matching, which makes
@@ -108,21 +131,20 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    gw = int(gradient_window or neighbourhood)
-    energy = cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (gw, gw),
-                           borderType=cv2.BORDER_REPLICATE)
+    energy = gradient_energy(gx * gx + gy * gy, int(gradient_window or neighbourhood), min_half_window)
     sat2 = (gradient_saturation * sigma) ** 2
     G = (energy / (energy + sat2)).astype(np.float32) if sat2 > 0 else np.ones_like(energy)
     return PreparedFrame(L, R, np.ascontiguousarray(G), sigma, 1.0 / floor,
-                         window_weights(neighbourhood, L.shape[2], window_sigma))
+                         window_weights(neighbourhood, L.shape[2], window_sigma),
+                         np.ascontiguousarray(grey, dtype=np.float32))
 
 
 _BLOCK = 64  # flies per parallel work item (one scratch buffer each)
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
-def _fitness_kernel(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical, inv_floor,
-                    wexp, out):
+def _fitness_kernel(L, R, G, guide, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical,
+                    inv_floor, inv_gamma, wexp, out):
     """L, R: H×(W·C) float32 (rows of interleaved colours); wexp: nw×(nw·C) per-sample weights."""
     H = L.shape[0]
     W = L.shape[1] // C
@@ -189,12 +211,32 @@ def _fitness_kernel(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpi
                     if yr + nw > H:
                         out[k] = -np.inf
                         continue
-                    for j in range(nw):
-                        y = yr + j
-                        for p in range(rowlen):
-                            b0 = R[y, orr + p]
-                            d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
-                            acc += wexp[j, p] * d * d
+                    if inv_gamma > 0:
+                        # Adaptive support: window pixels unlike the centre (in the left guide image)
+                        # count less, so a window straddling a depth edge is judged by its centre's side.
+                        gc = guide[yr + half, xn]
+                        wsum = np.float32(0.0)
+                        for j in range(nw):
+                            y = yr + j
+                            for i in range(nw):
+                                t = (guide[y, xn - half + i] - gc) * inv_gamma
+                                w = wexp[j, i * C] / (np.float32(1.0) + t * t)
+                                s = np.float32(0.0)
+                                for c in range(C):
+                                    p = i * C + c
+                                    b0 = R[y, orr + p]
+                                    d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
+                                    s += d * d
+                                acc += w * s
+                                wsum += w
+                        acc = acc / (wsum * C)
+                    else:
+                        for j in range(nw):
+                            y = yr + j
+                            for p in range(rowlen):
+                                b0 = R[y, orr + p]
+                                d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
+                                acc += wexp[j, p] * d * d
                 g = G[int(np.floor(v + 0.5)), int(np.floor(ul + 0.5))]
             else:
                 xl0 = int(np.floor(ul + 0.5))
@@ -216,7 +258,7 @@ def _fitness_kernel(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpi
 
 
 def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.ndarray,
-                  subpixel: bool = True, vertical: bool = False,
+                  subpixel: bool = True, vertical: bool = False, support_gamma: float | None = None,
                   out: np.ndarray | None = None) -> np.ndarray:
     """(N,) float32 image fitness of (N, 3) left-optical positions on a prepared frame."""
     pos = np.ascontiguousarray(positions, dtype=np.float32)
@@ -228,6 +270,7 @@ def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.
     half = frame.weights.shape[0] // 2
     wexp = np.ascontiguousarray(np.repeat(frame.weights, C, axis=1))
     _fitness_kernel(frame.left.reshape(H, W * C), frame.right.reshape(H, W * C), frame.gradient_norm,
-                    pos, calib.fx, calib.fy, calib.cx_left, calib.cx_right, calib.cy, calib.baseline,
-                    half, C, bool(subpixel), bool(vertical), np.float32(frame.inv_floor), wexp, out)
+                    frame.guide, pos, calib.fx, calib.fy, calib.cx_left, calib.cx_right, calib.cy,
+                    calib.baseline, half, C, bool(subpixel), bool(vertical), np.float32(frame.inv_floor),
+                    np.float32(1.0 / support_gamma if support_gamma else 0.0), wexp, out)
     return out
