@@ -1,0 +1,346 @@
+"""Vectorised ray caster for a world of textured rectangles, and the camera's photometric model.
+
+One numba kernel (parallel over image rows) casts the ray of every pixel against the quads whose screen
+bounding box covers it, keeps the nearest hit, and shades it: trilinear (mip-mapped, level chosen by the
+pixel's footprint on the surface) texture lookup × (ambient + sun + point lights, Lambertian, no
+shadows).  Rays follow the project's pinhole model exactly: pixel (i, j) looks along optical direction
+((i − cx)/fx, (j − cy)/fy, 1), so a world point lands where `StereoCalibration.project` puts it and the
+depth map holds Z in the camera optical frame.
+
+The photometric stage turns radiance into uint8 like a sensor would: exposure × gain, black offset,
+vignetting, read + shot noise, quantisation.  The two cameras get different gain and offset.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from common.sim.world import DECAL_BIAS_M, World
+
+NEAR_M = 0.01
+
+
+@nb.njit(cache=True)
+def _screen_bboxes(cam_c, R_cw, fx, fy, cx, cy, W, H, origin, u, v):
+    """(Q, 4) int64 [u0, u1, v0, v1] pixel bounds of each quad after clipping at the near plane
+    (u0 > u1 when the quad is not visible at all) and (Q,) its nearest optical Z.  R_cw rotates map
+    vectors into the optical frame."""
+    Q = origin.shape[0]
+    out = np.empty((Q, 4), np.int64)
+    zmin = np.full(Q, np.inf)
+    poly = np.empty((4, 3))
+    clipped = np.empty((8, 3))
+    for q in range(Q):
+        for k in range(4):
+            p = origin[q].copy()
+            if k == 1 or k == 2:
+                p += u[q]
+            if k == 2 or k == 3:
+                p += v[q]
+            d = p - cam_c
+            for r in range(3):
+                poly[k, r] = R_cw[r, 0] * d[0] + R_cw[r, 1] * d[1] + R_cw[r, 2] * d[2]
+        n = 0  # Sutherland–Hodgman against z >= NEAR_M
+        for k in range(4):
+            a = poly[k]
+            b = poly[(k + 1) % 4]
+            ina = a[2] >= NEAR_M
+            inb = b[2] >= NEAR_M
+            if ina:
+                clipped[n] = a
+                n += 1
+            if ina != inb:
+                t = (NEAR_M - a[2]) / (b[2] - a[2])
+                clipped[n] = a + t * (b - a)
+                n += 1
+        if n == 0:
+            out[q, 0], out[q, 1], out[q, 2], out[q, 3] = 1, 0, 1, 0
+            continue
+        umin, umax, vmin, vmax = 1e18, -1e18, 1e18, -1e18
+        for k in range(n):
+            zmin[q] = min(zmin[q], clipped[k, 2])
+            pu = fx * clipped[k, 0] / clipped[k, 2] + cx
+            pv = fy * clipped[k, 1] / clipped[k, 2] + cy
+            umin, umax = min(umin, pu), max(umax, pu)
+            vmin, vmax = min(vmin, pv), max(vmax, pv)
+        out[q, 0] = max(0, int(np.floor(umin)) - 1)
+        out[q, 1] = min(W - 1, int(np.ceil(umax)) + 1)
+        out[q, 2] = max(0, int(np.floor(vmin)) - 1)
+        out[q, 3] = min(H - 1, int(np.ceil(vmax)) + 1)
+        if out[q, 0] > out[q, 1] or out[q, 2] > out[q, 3]:
+            out[q, 0], out[q, 1], out[q, 2], out[q, 3] = 1, 0, 1, 0
+    return out, zmin
+
+
+@nb.njit(cache=True, inline="always")
+def _bilinear_add(texels, off, w, h, x, y, wrap, weight, acc):
+    """acc[:] += weight × bilinear sample (RGB) of one mip level at texel coordinates (x, y)."""
+    x -= 0.5
+    y -= 0.5
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = x - x0
+    fy = y - y0
+    ix0 = int(x0)
+    iy0 = int(y0)
+    ix1 = ix0 + 1
+    iy1 = iy0 + 1
+    if wrap:
+        ix0 %= w
+        ix1 %= w
+        iy0 %= h
+        iy1 %= h
+    else:
+        ix0 = min(max(ix0, 0), w - 1)
+        ix1 = min(max(ix1, 0), w - 1)
+        iy0 = min(max(iy0, 0), h - 1)
+        iy1 = min(max(iy1, 0), h - 1)
+    i00 = off + iy0 * w + ix0
+    i01 = off + iy0 * w + ix1
+    i10 = off + iy1 * w + ix0
+    i11 = off + iy1 * w + ix1
+    w00 = (1 - fx) * (1 - fy) * weight
+    w01 = fx * (1 - fy) * weight
+    w10 = (1 - fx) * fy * weight
+    w11 = fx * fy * weight
+    for ch in range(3):
+        acc[ch] += (texels[i00, ch] * w00 + texels[i01, ch] * w01
+                    + texels[i10, ch] * w10 + texels[i11, ch] * w11)
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
+          origin, normal, u_dual, v_dual, size, tex, decal,
+          texels, toff, tw, th, nlev, period, emissive,
+          ambient, sun, sun_int, lights, sky, decal_bias,
+          out_rad, out_depth, accumulate):
+    Q = origin.shape[0]
+    # Per-quad constants for this view.
+    on = np.empty(Q)
+    for q in range(Q):
+        on[q] = ((origin[q, 0] - cam_c[0]) * normal[q, 0] + (origin[q, 1] - cam_c[1]) * normal[q, 1]
+                 + (origin[q, 2] - cam_c[2]) * normal[q, 2])
+    inv_fx = 1.0 / fx
+    inv_fy = 1.0 / fy
+    for j in nb.prange(H):
+        # Quads whose screen box covers this row, nearest first (``order`` is sorted by zmin).
+        rowq = np.empty(order.shape[0], np.int64)
+        acc = np.zeros(3, np.float32)
+        nq = 0
+        for k in range(order.shape[0]):
+            q = order[k]
+            if bbox[q, 2] <= j and j <= bbox[q, 3]:
+                rowq[nq] = q
+                nq += 1
+        prev = -1
+        oy = (j - cy) * inv_fy
+        for i in range(W):
+            ox = (i - cx) * inv_fx
+            dx = R_wc[0, 0] * ox + R_wc[0, 1] * oy + R_wc[0, 2]
+            dy = R_wc[1, 0] * ox + R_wc[1, 1] * oy + R_wc[1, 2]
+            dz = R_wc[2, 0] * ox + R_wc[2, 1] * oy + R_wc[2, 2]
+            best = np.inf
+            bq = -1
+            bt = 0.0
+            ba = 0.0
+            bb = 0.0
+            bden = 0.0
+            for k in range(-1, nq):
+                # The previous pixel's quad first: it usually wins, so the rest fail the depth test early.
+                if k < 0:
+                    q = prev
+                    if q < 0:
+                        continue
+                else:
+                    q = rowq[k]
+                    if zmin[q] - decal_bias > best:
+                        break
+                    if q == prev:
+                        continue
+                if i < bbox[q, 0] or i > bbox[q, 1]:
+                    continue
+                den = dx * normal[q, 0] + dy * normal[q, 1] + dz * normal[q, 2]
+                if den > -1e-12 and den < 1e-12:
+                    continue
+                if decal[q] and den >= 0:
+                    continue
+                t = on[q] / den
+                if t <= 1e-6:
+                    continue
+                te = t - decal_bias if decal[q] else t
+                if te >= best:
+                    continue
+                px = cam_c[0] + t * dx - origin[q, 0]
+                py = cam_c[1] + t * dy - origin[q, 1]
+                pz = cam_c[2] + t * dz - origin[q, 2]
+                a = px * u_dual[q, 0] + py * u_dual[q, 1] + pz * u_dual[q, 2]
+                if a < 0.0 or a > 1.0:
+                    continue
+                b = px * v_dual[q, 0] + py * v_dual[q, 1] + pz * v_dual[q, 2]
+                if b < 0.0 or b > 1.0:
+                    continue
+                best = te
+                bq = q
+                bt = t
+                ba = a
+                bb = b
+                bden = den
+            prev = bq
+            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if bq < 0:
+                elev = dz / dn
+                f = 1.0 - 0.35 * max(elev, 0.0)
+                for ch in range(3):
+                    val = sky[ch] * f
+                    if accumulate:
+                        out_rad[j, i, ch] += val
+                    else:
+                        out_rad[j, i, ch] = val
+                if not accumulate:
+                    out_depth[j, i] = np.inf
+                continue
+            if not accumulate:
+                out_depth[j, i] = bt
+            tid = tex[bq]
+            if period[tid, 0] > 0:
+                s = ba * size[bq, 0] / period[tid, 0]
+                tt = bb * size[bq, 1] / period[tid, 1]
+                tpm = max(tw[tid, 0] / period[tid, 0], th[tid, 0] / period[tid, 1])
+                wrap = True
+            else:
+                s = ba
+                tt = bb
+                tpm = max(tw[tid, 0] / size[bq, 0], th[tid, 0] / size[bq, 1])
+                wrap = False
+            cos_t = abs(bden) / dn
+            foot = bt * dn / (fx * np.sqrt(max(cos_t, 0.02)))
+            lod = np.log2(max(foot * tpm, 1.0))
+            maxl = nlev[tid] - 1
+            if lod > maxl:
+                lod = float(maxl)
+            l0 = int(lod)
+            fr = lod - l0
+            l1 = min(l0 + 1, maxl)
+            # Shading: facing normal towards the camera.
+            sg = -1.0 if bden > 0 else 1.0
+            nx = normal[bq, 0] * sg
+            ny = normal[bq, 1] * sg
+            nz = normal[bq, 2] * sg
+            if emissive[tid]:
+                shade = 1.3
+            else:
+                shade = ambient + sun_int * max(0.0, nx * sun[0] + ny * sun[1] + nz * sun[2])
+                hx = cam_c[0] + bt * dx
+                hy = cam_c[1] + bt * dy
+                hz = cam_c[2] + bt * dz
+                for li in range(lights.shape[0]):
+                    lx = lights[li, 0] - hx
+                    ly = lights[li, 1] - hy
+                    lz = lights[li, 2] - hz
+                    d2 = lx * lx + ly * ly + lz * lz
+                    ndl = (nx * lx + ny * ly + nz * lz) / np.sqrt(d2 + 1e-12)
+                    if ndl > 0:
+                        shade += lights[li, 3] * ndl / (1.0 + d2 / (lights[li, 4] * lights[li, 4]))
+            acc[0] = 0.0
+            acc[1] = 0.0
+            acc[2] = 0.0
+            w0 = tw[tid, l0]
+            h0 = th[tid, l0]
+            if fr > 0.02 and l1 != l0:
+                _bilinear_add(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0 - fr, acc)
+                w1 = tw[tid, l1]
+                h1 = th[tid, l1]
+                _bilinear_add(texels, toff[tid, l1], w1, h1, s * w1, (1.0 - tt) * h1, wrap, fr, acc)
+            else:
+                _bilinear_add(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0, acc)
+            for ch in range(3):
+                val = acc[ch] * shade
+                if accumulate:
+                    out_rad[j, i, ch] += val
+                else:
+                    out_rad[j, i, ch] = val
+
+
+@nb.njit(cache=True, inline="always")
+def _splitmix64(x):
+    x = (x + np.uint64(0x9E3779B97F4A7C15))
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+@nb.njit(cache=True, inline="always")
+def _gauss(key):
+    """Approximately standard-normal value from a 64-bit key (sum of four 16-bit uniforms, Irwin–Hall)."""
+    h = _splitmix64(key)
+    m = np.uint64(0xFFFF)
+    s = float(h & m) + float((h >> np.uint64(16)) & m) + float((h >> np.uint64(32)) & m) + float(h >> np.uint64(48))
+    return (s / 65536.0 - 2.0) * 1.7320508075688772
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def _sensor(rad, scale, gain, offset, vignette, noise_key, read_noise, shot_noise, out):
+    H, W = vignette.shape
+    base = _splitmix64(np.uint64(noise_key))
+    for j in nb.prange(H):
+        for i in range(W):
+            g = scale * gain * vignette[j, i] * 255.0
+            for ch in range(3):
+                val = rad[j, i, ch] * g + offset
+                sig = np.sqrt(read_noise * read_noise + shot_noise * max(val, 0.0))
+                val += sig * _gauss(base + np.uint64((j * W + i) * 3 + ch))
+                val = np.floor(val + 0.5)
+                out[j, i, ch] = np.uint8(min(max(val, 0.0), 255.0))
+
+
+class Renderer:
+    """Renders one pinhole camera view of a World (radiance and depth), and applies sensor photometry."""
+
+    def __init__(self, world: World, width: int, height: int, fx: float, fy: float, cx: float, cy: float):
+        self.world = world
+        self.W, self.H = int(width), int(height)
+        self.fx, self.fy, self.cx, self.cy = float(fx), float(fy), float(cx), float(cy)
+        lt = world.scenario.lighting
+        sun = np.asarray(lt.sun, float)
+        self._sun = sun / max(np.linalg.norm(sun), 1e-12)
+        self._lights = np.array([[*l.position, l.intensity, l.radius] for l in lt.lights], float).reshape(-1, 5)
+        self._sky = np.asarray(lt.sky_color, float) / 255.0
+        yy, xx = np.mgrid[0:self.H, 0:self.W]
+        r2 = ((xx - self.cx) / (self.W / 2)) ** 2 + ((yy - self.cy) / (self.H / 2)) ** 2
+        self.vignette_strength = 0.0
+        self._r2 = (r2 / 2.0).astype(np.float32)  # 1 at the corners
+
+    def vignette(self, strength: float) -> np.ndarray:
+        return (1.0 - strength * self._r2).astype(np.float32)
+
+    def radiance(self, T_map_optical: np.ndarray, out_rad=None, out_depth=None, accumulate=False):
+        """(H, W, 3) float32 radiance and (H, W) float32 depth (Z, inf for sky) seen from a camera pose."""
+        q, a = self.world.quads, self.world.atlas
+        c = np.ascontiguousarray(T_map_optical[:3, 3], float)
+        R_wc = np.ascontiguousarray(T_map_optical[:3, :3], float)
+        if out_rad is None:
+            out_rad = np.empty((self.H, self.W, 3), np.float32)
+        if out_depth is None:
+            out_depth = np.empty((self.H, self.W), np.float32)
+        bbox, zmin = _screen_bboxes(c, np.ascontiguousarray(R_wc.T), self.fx, self.fy, self.cx, self.cy,
+                                    self.W, self.H, q.origin, q.u, q.v)
+        visible = np.flatnonzero(bbox[:, 0] <= bbox[:, 1])
+        order = visible[np.argsort(zmin[visible], kind="stable")]
+        _cast(c, R_wc, self.fx, self.fy, self.cx, self.cy, self.W, self.H, bbox, order, zmin,
+              q.origin, q.normal, q.u_dual, q.v_dual, q.size, q.tex, q.decal,
+              a.texels, a.offset, a.width, a.height, a.n_levels, a.period_m, a.emissive,
+              float(self.world.scenario.lighting.ambient), self._sun,
+              float(self.world.scenario.lighting.sun_intensity), self._lights, self._sky, DECAL_BIAS_M,
+              out_rad, out_depth, accumulate)
+        return out_rad, out_depth
+
+    @staticmethod
+    def expose(rad: np.ndarray, scale: float, gain: float, offset: float, vignette: np.ndarray,
+               noise_key: int, read_noise: float, shot_noise: float) -> np.ndarray:
+        """uint8 image of a radiance image through the sensor model.  The noise is a deterministic
+        function of ``noise_key`` (a 63-bit integer: draw a fresh one per image) and the pixel, so the
+        result does not depend on thread scheduling."""
+        out = np.empty(rad.shape, np.uint8)
+        _sensor(rad, float(scale), float(gain), float(offset), vignette, int(noise_key) & ((1 << 63) - 1),
+                float(read_noise), float(shot_noise), out)
+        return out
