@@ -160,7 +160,7 @@ def build_parser():
     src.add_argument("--units-m", type=float, default=None,
                      help="metres per unit of T in the YAML (overrides its units_m node)")
     src.add_argument("--fps", type=float, default=None,
-                     help="frame rate to publish at (default: the file's rate; devices: as delivered)")
+                     help="frame rate to publish at; unset: the file's own rate, or as fast as the device delivers")
     src.add_argument("--loop", action="store_true", help="rewind video files at their end")
     src.add_argument("--encoding", default="rgb8", choices=RAW_ENCODINGS + COMPRESSED_ENCODINGS)
     src.add_argument("--quality", type=int, default=90, help="JPEG quality")

@@ -168,3 +168,29 @@ def test_swapped_cameras_are_refused(videos, tmp_path):
     swapped = RawStereoRig(W, H, rig.K2, rig.D2, rig.K1, rig.D1, rig.R.T, -rig.R.T @ rig.T)
     with pytest.raises(ValueError, match="swap the left and right"):
         rectify_rig(swapped)
+
+
+def test_camera_process_publishes_frames_and_latched_calibration(videos, zenoh_port, tmp_path):
+    from common.bus import BusOptions, Node
+    from common.messages import StereoCalibrationMsg
+    from tests.helpers import hub, start_module, stop, wait_until
+
+    d, rig, truth = videos
+    proc = start_module("services.camera", "--left", str(d / "left.avi"), "--right", str(d / "right.avi"),
+                        "-c", str(d / "stereo.yaml"), "--fps", "20", "--loop", "--encoding", "jpeg",
+                        port=zenoh_port, log_path=tmp_path / "camera.log")
+    try:
+        with Node("camera-test", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+            frames = node.subscribe_latest("stereo/frame", StereoFrame)
+            got = []
+            assert wait_until(lambda: (m := frames.take()) is not None and not got.append(m), timeout=15), \
+                (tmp_path / "camera.log").read_text()
+            cal = node.query_latest("stereo/calibration", StereoCalibrationMsg, timeout=2.0)  # a late joiner
+            assert cal is not None
+            assert calibration_from_msg(cal).baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
+            left, _ = frame_images(got[0])
+            assert left.shape == (H, W, 3) and got[0].encoding == "jpeg"
+            assert min(_interior_error(left, tl) for tl, _ in truth) < 7
+    finally:
+        code = stop(proc)
+    assert code == 0, (tmp_path / "camera.log").read_text()
