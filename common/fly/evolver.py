@@ -58,7 +58,9 @@ class FlyEvolver:
         self._margin = self._half + 1.0
         self._d_range = disparity_bounds(calib, config.depth_min, config.depth_max)
         span = calib.width - 1 - 2 * self._margin
-        self._d_range = (max(self._d_range[0], -span), min(self._d_range[1], span))
+        fb = calib.fx * calib.baseline
+        d_far = fb / (1e6 * config.depth_min) - calib.doffs   # keep mutated flies at finite depth
+        self._d_range = (max(self._d_range[0], -span, d_far), min(self._d_range[1], span))
         self._sigma_max = max((self._d_range[1] - self._d_range[0]) / 2, config.mutation_sigma_disparity_min)
         cell = config.sharing_radius_px or float(np.sqrt(calib.width * calib.height / config.population))
         self.sharing = SharingGrid(calib.width, calib.height, cell, config.sharing_strength)

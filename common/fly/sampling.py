@@ -38,7 +38,9 @@ def sample_flies(calib: StereoCalibration, n: int, depth_min: float, depth_max: 
         raise SamplingError(
             f"depth range [{depth_min}, {depth_max}] m gives disparities [{d_lo:.1f}, {d_hi:.1f}] px, "
             f"none of which is seen by both {W}-px-wide cameras")
-    iz = rng.uniform((d_lo_ok + calib.doffs) / fb, (d_hi_ok + calib.doffs) / fb, n)
+    iz_lo, iz_hi = (d_lo_ok + calib.doffs) / fb, (d_hi_ok + calib.doffs) / fb
+    # depth_max = inf: 1/z may be drawn as 0; keep flies finite (at most ~10⁶ times the nearest depth).
+    iz = np.maximum(rng.uniform(iz_lo, iz_hi, n), 1e-6 * iz_hi)
     d = fb * iz - calib.doffs
     u_min = np.maximum(lo_px, lo_px + d)
     u_max = np.minimum(hi_px, hi_px + d)
