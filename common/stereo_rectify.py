@@ -189,7 +189,10 @@ def _open(path: Path) -> cv2.FileStorage:
 def read_node(node: cv2.FileNode, where: str) -> np.ndarray:
     """A numeric node (opencv-matrix, sequence of numbers, or scalar) as a float64 array."""
     if node.isMap():
-        m = node.mat()
+        try:
+            m = node.mat()
+        except (cv2.error, SystemError):
+            m = None
         if m is None:
             raise CalibrationError(f"{where} is a map, not a matrix")
         return np.asarray(m, np.float64)
