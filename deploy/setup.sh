@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Set up (or refresh) flyslam's virtual environment in .venv: safe to run again and again.
+# Needs only Python >= 3.11 and access to PyPI.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  echo "[setup] creating .venv with $($PY --version)" >&2
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.flyslam-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ deploy/constraints.txt -nt "$stamp" ]; then
+  echo "[setup] installing flyslam and its dependencies (pinned in deploy/constraints.txt)" >&2
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q -c deploy/constraints.txt -e '.[test]'
+  touch "$stamp"
+fi
+# Rerun's usage analytics stay off on every flyslam machine.
+.venv/bin/rerun analytics disable >/dev/null 2>&1 || true
+echo "[setup] ready: .venv/bin/flyslam" >&2

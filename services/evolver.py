@@ -1,0 +1,186 @@
+"""Fly evolver service: the Fly algorithm running continuously on the newest stereo frame.
+
+Takes ``stereo/frame`` with latest-value semantics (frames that arrive while it works are skipped and
+counted), the calibration from ``stereo/calibration`` (latched), the odometry pose from ``fusion/odom``
+and the sonar scan from ``fusion/sonar``. On each new frame it moves every fly by the camera's motion
+since the previous frame (proprioceptive fusion), re-scores the population on the new images, evolves
+for ``--settle-ms`` and publishes ``flies/population`` tagged with that frame's seq and stamp; between
+frames it keeps evolving and republishes at ``--publish-hz`` (anytime: the population is always the
+current answer). ``--duty`` caps the share of one core's time it spends evolving between frames, so the
+other services on a small machine keep theirs.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+
+import numpy as np
+
+from common import messages as m
+from common.camera import CalibrationError
+from common.fly import EvolverConfig, FlyEvolver
+from common.geometry import invert
+from common.images import frame_images
+from common.pose_buffer import PoseBuffer
+from services.base import run_service, service_parser
+
+log = logging.getLogger("flyslam.evolver")
+
+
+def build_parser():
+    p = service_parser("evolver", __doc__.splitlines()[0])
+    p.add_argument("--population", type=int, default=5000, help="number of flies")
+    p.add_argument("--depth-min", type=float, default=0.3, help="nearest fly depth (m)")
+    p.add_argument("--depth-max", type=float, default=30.0, help="farthest fly depth (m); inf allowed")
+    p.add_argument("--settle-ms", type=float, default=40.0, help="evolution time on a new frame before publishing")
+    p.add_argument("--publish-hz", type=float, default=10.0, help="republish rate between frames")
+    p.add_argument("--duty", type=float, default=0.7, help="fraction of wall time spent evolving between frames")
+    p.add_argument("--threads", type=int, default=None, help="numba threads for the fitness kernel")
+    p.add_argument("--sonar-weight", type=float, default=0.0, help="weight of the sonar fitness term (0 = off)")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+class Inputs:
+    """What Zenoh threads deliver between frames: calibration, odometry history, newest sonar scan."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.calibration_msg: m.StereoCalibrationMsg | None = None
+        self.odom = PoseBuffer(maxlen=400)
+        self.sonar: m.SonarScan | None = None
+
+    def on_calibration(self, msg):
+        with self.lock:
+            self.calibration_msg = msg
+
+    def on_odom(self, msg: m.PoseEstimate):
+        with self.lock:
+            self.odom.add(msg.header.stamp_ns, m.transform_of(msg))
+
+    def on_sonar(self, msg: m.SonarScan):
+        with self.lock:
+            self.sonar = msg
+
+
+def body(node, args) -> int:
+    if args.threads:
+        import numba
+        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    inputs = Inputs()
+    node.subscribe("stereo/calibration", m.StereoCalibrationMsg, inputs.on_calibration)
+    node.subscribe("fusion/odom", m.PoseEstimate, inputs.on_odom)
+    node.subscribe("fusion/sonar", m.SonarScan, inputs.on_sonar)
+    frames = node.subscribe_latest("stereo/frame", m.StereoFrame)
+    out = node.publisher("flies/population")
+    calib_msg = node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0)
+    if calib_msg is not None:
+        inputs.on_calibration(calib_msg)
+
+    evolver = None
+    calib = None
+    used_calib_msg = None
+    last_T_odom_cam = None
+    current = None           # (seq, stamp, T_odom_cam or None) of the frame the flies were last evaluated on
+    last_publish = 0.0
+    generations_window = (time.monotonic(), 0)
+    config = EvolverConfig(population=args.population, depth_min=args.depth_min, depth_max=args.depth_max)
+
+    def publish():
+        seq, stamp, T_odom_cam = current
+        out.publish(m.FlyPopulation(positions=evolver.positions, fitness=evolver.fitness,
+                                    generation=int(evolver.generation), source_seq=int(seq),
+                                    T_odom_camera=T_odom_cam,
+                                    header=m.header(0, stamp, m.CAMERA_LEFT_OPTICAL)))
+
+    while not node.stopping:
+        now = time.monotonic()
+        if evolver is not None and now - generations_window[0] >= 1.0:
+            node.rates["generations_per_s"] = (evolver.generation - generations_window[1]) / (now - generations_window[0])
+            generations_window = (now, evolver.generation)
+        frame = frames.take()
+        if frame is None and evolver is None:
+            node.sleep(0.005)
+            continue
+        if frame is not None:
+            with inputs.lock:
+                cmsg = inputs.calibration_msg
+            if cmsg is None:
+                node.counters.add("frames_without_calibration")
+                continue
+            if cmsg is not used_calib_msg:
+                try:
+                    new_calib = m.calibration_from_msg(cmsg)
+                except CalibrationError as e:
+                    node.counters.add("bad_calibration")
+                    log.error("calibration rejected: %s", e)
+                    continue
+                if calib is None or (new_calib.width, new_calib.height, new_calib.fx, new_calib.baseline) != \
+                        (calib.width, calib.height, calib.fx, calib.baseline):
+                    calib = new_calib
+                    evolver = FlyEvolver(calib, config, seed=args.seed)
+                    if args.sonar_weight > 0:
+                        _attach_sonar(evolver, inputs, calib, args.sonar_weight)
+                    last_T_odom_cam = None
+                    log.info("calibration %dx%d f=%.1f B=%.3f: %d flies", calib.width, calib.height, calib.fx,
+                             calib.baseline, args.population)
+                used_calib_msg = cmsg
+            try:
+                left, right = frame_images(frame)
+                calib.check_image(left, "stereo frame")
+            except (m.DecodeError, CalibrationError) as e:
+                node.counters.add("bad_frames")
+                log.warning("frame %d rejected: %s", frame.header.seq, e)
+                continue
+            with inputs.lock:
+                T_odom_base = inputs.odom.at(frame.header.stamp_ns)
+            T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera
+            if T_odom_cam is not None and last_T_odom_cam is not None:
+                evolver.move_flies(invert(T_odom_cam) @ last_T_odom_cam)   # T_new_old
+            elif last_T_odom_cam is not None:
+                node.counters.add("frames_without_odometry")
+            last_T_odom_cam = T_odom_cam if T_odom_cam is not None else last_T_odom_cam
+            evolver.set_images(left, right)
+            current = (frame.header.seq, frame.header.stamp_ns, T_odom_cam)
+            t_end = time.monotonic() + args.settle_ms / 1000
+            while time.monotonic() < t_end:
+                evolver.step(1)
+            publish()
+            last_publish = time.monotonic()
+            node.progress += 1
+            node.rates["frames_skipped"] = float(frames.skipped)
+            continue
+        # Between frames: evolve with a duty cycle, republish at the configured rate.
+        t0 = time.monotonic()
+        evolver.step(1)
+        busy = time.monotonic() - t0
+        if time.monotonic() - last_publish >= 1.0 / args.publish_hz:
+            publish()
+            last_publish = time.monotonic()
+        if args.duty < 1.0:
+            node.sleep(busy * (1.0 / max(args.duty, 0.05) - 1.0))
+    return 0
+
+
+def _attach_sonar(evolver, inputs: Inputs, calib, weight: float) -> None:
+    """Plug the sonar fitness term (common.fusion) into the evolver, fed by the newest scan."""
+    from common.fusion.sonar_term import sonar_fitness_term
+
+    def term(positions):
+        with inputs.lock:
+            scan = inputs.sonar
+        if scan is None:
+            return np.zeros(len(positions), np.float32)
+        return sonar_fitness_term(positions, calib.T_base_camera, scan)
+
+    evolver.add_fitness_term("sonar", term, weight)
+
+
+def main(argv=None) -> int:
+    return run_service("evolver", build_parser(), body, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
