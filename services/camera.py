@@ -45,8 +45,9 @@ def describe(spec: str) -> str:
     return f"camera device {spec}" if spec.isdigit() or spec.startswith("/dev/") else f"video file {spec}"
 
 
-def open_capture(spec: str, size: tuple[int, int] | None = None) -> cv2.VideoCapture:
-    """VideoCapture of a device index / device path / video file; devices are asked for ``size``."""
+def open_capture(spec: str, size: tuple[int, int] | None = None, fps: float | None = None) -> cv2.VideoCapture:
+    """VideoCapture of a device index / device path / video file; devices are asked for ``size`` and
+    ``fps`` and for a one-frame buffer (a paced reader then gets fresh frames, not queued ones)."""
     is_device = spec.isdigit() or spec.startswith("/dev/")
     if not is_device and not Path(spec).is_file():
         raise CameraError(f"{describe(spec)} not found")
@@ -54,9 +55,13 @@ def open_capture(spec: str, size: tuple[int, int] | None = None) -> cv2.VideoCap
     cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
     if not cap.isOpened():
         raise CameraError(f"{describe(spec)} could not be opened")
-    if is_device and size is not None:
-        cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
-        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+    if is_device:
+        if size is not None:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+        if fps:
+            cap.set(cv2.CAP_PROP_FPS, fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
     return cap
 
 
@@ -68,7 +73,8 @@ class StereoCapture:
     """
 
     def __init__(self, calib: StereoCalibration, left: str | None = None, right: str | None = None,
-                 sbs: str | None = None, loop: bool = False, calibration_name: str = "the calibration"):
+                 sbs: str | None = None, loop: bool = False, calibration_name: str = "the calibration",
+                 fps: float | None = None):
         if (sbs is None) == (left is None or right is None):
             raise CameraError("give either --sbs, or both --left and --right")
         self.specs = [sbs] if sbs is not None else [left, right]
@@ -79,7 +85,7 @@ class StereoCapture:
         want = (2 * w, h) if self.side_by_side else (w, h)
         self.caps = []
         try:
-            self.caps = [open_capture(s, want) for s in self.specs]
+            self.caps = [open_capture(s, want, fps) for s in self.specs]
             self.fps = self.caps[0].get(cv2.CAP_PROP_FPS) or 0.0
             self._first = self._grab()
             if self._first is None:
@@ -208,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         calib = load_calibration(args.calibration, args.units_m)
         pipeline = StereoPipeline(calib, args.encoding, args.quality)
         capture = StereoCapture(calib, args.left, args.right, args.sbs, loop=args.loop,
-                                calibration_name=f"calibration {', '.join(args.calibration)}")
+                                calibration_name=f"calibration {', '.join(args.calibration)}", fps=args.fps)
     except (CalibrationError, CameraError) as e:
         print(f"flyslam camera: {e}", file=sys.stderr)
         return 2
