@@ -53,6 +53,21 @@ def find_corners(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | Non
     return np.asarray(refined, np.float32).reshape(-1, 1, 2)  # OpenCV 5 may return (N, 2)
 
 
+def _detect_pair(left, right, pattern, size) -> tuple[np.ndarray, np.ndarray] | str:
+    """Corners of both images, or why the pair cannot be used."""
+    if left.shape[:2] != right.shape[:2]:
+        return f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} differ"
+    if size is not None and (left.shape[1], left.shape[0]) != size:
+        return f"{left.shape[1]}×{left.shape[0]} differs from the first pair's {size[0]}×{size[1]}"
+    cl = find_corners(left, pattern)
+    if cl is None:
+        return f"no {pattern[0]}x{pattern[1]} board in the left image"
+    cr = find_corners(right, pattern)
+    if cr is None:
+        return f"no {pattern[0]}x{pattern[1]} board in the right image"
+    return cl, cr
+
+
 @dataclass
 class ChessboardCalibration:
     """Result of :func:`calibrate_stereo`; ``rig`` is ready for ``save_stereo_yaml``/``rectify_rig``."""
@@ -87,23 +102,16 @@ def calibrate_stereo(pairs: Iterable[tuple[str, np.ndarray, np.ndarray]], patter
     size = None
     used, rejected, left_pts, right_pts = [], [], [], []
     for i, (name, left, right) in enumerate(pairs, start=1):
-        if left.shape[:2] != right.shape[:2]:
-            rejected.append((name, f"left {left.shape[1]}×{left.shape[0]} and right "
-                                   f"{right.shape[1]}×{right.shape[0]} differ"))
-        elif size is not None and (left.shape[1], left.shape[0]) != size:
-            rejected.append((name, f"{left.shape[1]}×{left.shape[0]} differs from the first pair's {size[0]}×{size[1]}"))
-        else:
-            cl = find_corners(left, pattern)
-            cr = find_corners(right, pattern) if cl is not None else None
-            if cl is None or cr is None:
-                rejected.append((name, f"no {pattern[0]}x{pattern[1]} board in the "
-                                       f"{'left' if cl is None else 'right'} image"))
-            else:
-                size = size or (left.shape[1], left.shape[0])
-                used.append(name)
-                left_pts.append(cl)
-                right_pts.append(cr)
-        say(f"[{i}/{total or '?'}] {name}: {'ok' if used and used[-1] == name else 'rejected: ' + rejected[-1][1]}")
+        found = _detect_pair(left, right, pattern, size)
+        if isinstance(found, str):
+            rejected.append((name, found))
+            say(f"[{i}/{total or '?'}] {name}: rejected: {found}")
+            continue
+        size = size or (left.shape[1], left.shape[0])
+        used.append(name)
+        left_pts.append(found[0])
+        right_pts.append(found[1])
+        say(f"[{i}/{total or '?'}] {name}: ok")
     if len(used) < MIN_PAIRS:
         raise CalibrationError(f"only {len(used)} usable chessboard pair(s) (need {MIN_PAIRS}); "
                                + "; ".join(f"{n}: {r}" for n, r in rejected[:5]))
