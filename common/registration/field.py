@@ -67,13 +67,16 @@ class PseudoDistanceField:
     near_cells : near-field radius r_c in grid spacings.  2 (default): δ within ≈0.1 %, its gradient
         within ≈2 % of exact on the deep street scene; 0.75–1: δ still within 0.1 % and ≈2× faster,
         but the gradient is off by up to 15 %.
+    parallel_min : evaluate in parallel threads only for at least this many points (threads are a
+        loss on small batches, and 10× slower when another process holds a core).
     deconvolve : divide the kernel spectrum by the CIC window (removes the deposit smoothing bias).
     """
 
     def __init__(self, B, eps, weights_b=None, bounds=None, spacing=None, max_cells: int = 120_000,
-                 near_cells: float = 2.0, deconvolve: bool = True):
+                 near_cells: float = 2.0, deconvolve: bool = True, parallel_min: int = 4096):
         self.B = as_population(B, "B")
         self.eps = check_eps(eps)
+        self.parallel_min = int(parallel_min)
         self.wb = as_weights(weights_b, len(self.B), "weights_b")
         if max_cells < 64:
             raise PopulationError(f"max_cells must be at least 64, got {max_cells}")
@@ -148,7 +151,8 @@ class PseudoDistanceField:
         the registration's coarse-to-fine search.
         """
         Q = as_population(Q, "Q", allow_empty=True)
-        S, G, out = _kernels.fast_field(Q, *self._args(near), with_grad)
+        kern = _kernels.fast_field if len(Q) >= self.parallel_min else _kernels.fast_field_serial
+        S, G, out = kern(Q, *self._args(near), with_grad)
         self.last_outside = int(out)
         return (S, G) if with_grad else S
 

@@ -1,0 +1,411 @@
+"""Register two fly populations: the rigid displacement f minimising δ(A, f(B)).
+
+Louchet et al. find the robot's motion between two frames as the displacement that best superposes
+the population B seen at the second pose onto the population A seen at the first.  Here
+
+    f* = argmin_f δ(A, f(B)),    δ(A, f(B)) = (P/N) Σᵢ wᵃᵢ / S_B(f⁻¹(aᵢ))
+
+(a rigid f moves B's field with it, so B's field is built *once* and read at f⁻¹(aᵢ)).  f maps points
+of B's frame into A's frame: if A was seen from camera pose 1 and B from pose 2, f = T_cam1_cam2.
+
+Parametrisations (``res.params``):
+
+* ``plane="optical"`` (the paper's camera optical frame, y down): params (x, z, θ); f rotates by θ about
+  the y axis (``rot_y``) and translates by (x, 0, z).
+* ``plane="body"`` (REP-103 body/map frame, z up): params (x, y, θ); rotation θ about z, translation
+  (x, y, 0).
+* 6-DoF: params (tx, ty, tz, ωx, ωy, ωz), ω the rotation vector of f's rotation (``so3_exp``).
+
+Search (coarse to fine, in scale and in position):
+
+1. a lattice over the search window (prior ± window), scored on a random subset of A with B's
+   *far* field only — B smoothed within r_c, a wide-basin version of δ;
+2. the best distinct lattice minima are polished on that smoothed δ (L-BFGS-B, bounded by the window);
+3. the best two are refined on the full δ (near-field included) with a larger subset of A;
+   both are kept to detect ambiguity.
+
+Covariance (``res.covariance``): δ is a mean of per-fly terms cᵢ, so f* is an M-estimator and its
+covariance is the sandwich H⁻¹ (Σᵢ gᵢ gᵢᵀ) H⁻¹, with H the Hessian of the summed objective (central
+differences of the analytic gradient) and gᵢ = ∂cᵢ/∂params the per-fly gradients at the minimum.  This
+fixes the otherwise arbitrary scale of "curvature of δ": it is in params² units and shrinks as 1/n,
+and it is large along directions where δ is flat.  It treats flies as independent, which they are
+not quite (all of B carries one noise draw), so it is optimistic; treat it as a lower bound.
+
+Failures (``res.ok`` False with ``res.reason``; never an exception for well-formed input): too few
+flies; a minimum on the window boundary; a Hessian that is not positive definite; a flat minimum (the
+smallest eigenvalue of the Hessian, rotations scaled to metres by the population's radius, below
+``flat_ratio`` of the stiffest curvature, that of the larger of the Hessian's largest eigenvalue and
+the curvature of δ under a free 3-D translation — so a ground plane under a planar search, flat in
+all three parameters, is caught too); an ambiguous minimum (a second distinct minimum nearly as deep).
+Malformed input (wrong shapes, NaN, a non-rigid prior) raises PopulationError.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+import scipy.ndimage
+
+from ..geometry import make_transform, rot_y, rot_z, so3_exp, so3_log
+from .field import PseudoDistanceField
+from .pseudo_distance import PopulationError, as_population, as_weights, check_eps
+
+PLANES = ("optical", "body")
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of a registration.  ``T`` is f (4×4) with f(B) ≈ A; see the module docstring."""
+    T: np.ndarray
+    params: np.ndarray
+    covariance: np.ndarray
+    delta: float
+    ok: bool
+    reason: str = ""
+    mode: str = ""
+    hessian: np.ndarray | None = None
+    flatness: float = float("nan")     # λ_min/λ_max of the scaled Hessian (0 = perfectly flat)
+    ambiguity: float = float("nan")    # depth of the 2nd minimum relative to the best's (1 = as deep)
+    evaluations: int = 0
+    timings: dict = dc_field(default_factory=dict)
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard deviations of the params (sqrt of the covariance diagonal)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+
+
+# ------------------------------------------------------------------------------ parametrisations
+def _pose_optical(p):
+    return rot_y(p[2]), np.array([p[0], 0.0, p[1]])
+
+
+def _pose_body(p):
+    return rot_z(p[2]), np.array([p[0], p[1], 0.0])
+
+
+def _pose_6dof(p):
+    return so3_exp(p[3:]), np.asarray(p[:3], dtype=float)
+
+
+def _params_from_T(mode: str, T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    if mode == "optical":
+        return np.array([t[0], t[2], np.arctan2(R[0, 2], R[2, 2])])
+    if mode == "body":
+        return np.array([t[0], t[1], np.arctan2(R[1, 0], R[0, 0])])
+    return np.concatenate([t, so3_log(R)])
+
+
+_POSES = {"optical": _pose_optical, "body": _pose_body, "6dof": _pose_6dof}
+
+
+def _pose_jacobians(pose, p, step=1e-6):
+    """dR/dp_k (k, 3, 3) and dt/dp_k (k, 3) by central differences of the (cheap) param→pose map."""
+    k = len(p)
+    dR = np.empty((k, 3, 3))
+    dt = np.empty((k, 3))
+    for i in range(k):
+        e = np.zeros(k)
+        e[i] = step
+        Rp, tp = pose(p + e)
+        Rm, tm = pose(p - e)
+        dR[i] = (Rp - Rm) / (2 * step)
+        dt[i] = (tp - tm) / (2 * step)
+    return dR, dt
+
+
+class _Objective:
+    """J(p) = δ(A, f_p(B)) on a fixed subset of A, with its gradient and per-fly gradients."""
+
+    def __init__(self, field: PseudoDistanceField, A, wa, pose, near: bool):
+        self.field, self.A, self.wa, self.pose, self.near = field, A, wa, pose, near
+        self.scale = field.weight_sum / wa.sum()
+        self.count = 0
+
+    def _points(self, p):
+        R, t = self.pose(p)
+        D = self.A - t
+        return R, t, D, D @ R  # rows of D @ R are Rᵀ(aᵢ − t)
+
+    def value(self, p) -> float:
+        self.count += 1
+        _, _, _, Q = self._points(p)
+        S = self.field.field(Q, near=self.near)
+        return self.scale * float((self.wa / S).sum())
+
+    def per_fly(self, p):
+        """(J, per-fly gradients (n, k)) at p."""
+        self.count += 1
+        R, t, D, Q = self._points(p)
+        S, G = self.field.field(Q, with_grad=True, near=self.near)
+        c = self.scale * self.wa / S
+        Gq = (-c / S)[:, None] * G                      # ∂cᵢ/∂qᵢ
+        dR, dt = _pose_jacobians(self.pose, p)
+        # ∂qᵢ/∂p_k = dR_kᵀ(aᵢ − t) − Rᵀ dt_k ; as rows: dᵢ @ dR_k − dt_k @ R
+        J = np.stack([np.einsum("ij,ij->i", Gq, D @ dR[k] - dt[k] @ R) for k in range(len(p))], 1)
+        return float(c.sum()), J
+
+    def translation_hessian(self, p, step):
+        """3×3 Hessian of J under a free translation u of all of f⁻¹(A) (central differences)."""
+        _, _, _, Q = self._points(p)
+        H = np.zeros((3, 3))
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = step
+            g = []
+            for sgn in (1, -1):
+                S, G = self.field.field(Q + sgn * e, with_grad=True, near=self.near)
+                g.append(((-self.scale * self.wa / (S * S))[:, None] * G).sum(0))
+            H[i] = (g[0] - g[1]) / (2 * step)
+        return 0.5 * (H + H.T)
+
+    def value_and_grad(self, p):
+        v, J = self.per_fly(p)
+        return v, J.sum(0)
+
+
+def _bfgs_box(fun, x0, lo, hi, maxiter, xtol=1e-5, ftol=1e-10):
+    """Minimise fun (returns value, gradient) inside the box [lo, hi]: projected BFGS, Armijo backtracking.
+
+    A few parameters only; written here because scipy's L-BFGS-B spends milliseconds per call in its
+    Fortran/BLAS layer on this busy machine, more than our objective itself.
+    """
+    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    f, g = fun(x)
+    Hinv = np.eye(len(x))
+    for _ in range(maxiter):
+        d = -Hinv @ g
+        if g @ d >= 0:
+            Hinv = np.eye(len(x))
+            d = -g
+        alpha = 1.0
+        for _ in range(30):
+            xn = np.clip(x + alpha * d, lo, hi)
+            s = xn - x
+            if not np.any(s):
+                break
+            fn, gn = fun(xn)
+            if fn <= f + 1e-4 * (g @ s):
+                break
+            alpha *= 0.5
+        else:
+            return x, f
+        if not np.any(s):
+            return x, f
+        y = gn - g
+        sy = s @ y
+        done = np.max(np.abs(s)) < xtol or abs(f - fn) <= ftol * max(abs(f), 1e-300)
+        x, f, g = xn, fn, gn
+        if done:
+            break
+        if sy > 1e-300:
+            rho = 1.0 / sy
+            I = np.eye(len(x))
+            Hinv = (I - rho * np.outer(s, y)) @ Hinv @ (I - rho * np.outer(y, s)) + rho * np.outer(s, s)
+    return x, f
+
+
+def _lattice(center, half, counts):
+    axes = [np.linspace(c - h, c + h, n) if n > 1 else np.array([c]) for c, h, n in zip(center, half, counts)]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    return np.stack([m.ravel() for m in mesh], 1), tuple(len(a) for a in axes)
+
+
+def _reach_bounds(A, poses):
+    """Bounding box of f⁻¹(A) over a list of (R, t): where the field will be read."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    c_lo, c_hi = A.min(0), A.max(0)
+    corners = np.array([[x, y, z] for x in (c_lo[0], c_hi[0]) for y in (c_lo[1], c_hi[1])
+                        for z in (c_lo[2], c_hi[2])])
+    for R, t in poses:
+        q = (corners - t) @ R
+        lo = np.minimum(lo, q.min(0))
+        hi = np.maximum(hi, q.max(0))
+    return lo, hi
+
+
+def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
+    return RegistrationResult(T=np.eye(4) if T is None else T,
+                              params=np.full(k, np.nan) if params is None else params,
+                              covariance=np.full((k, k), np.nan), delta=delta, ok=False,
+                              reason=reason, mode=mode, **kw)
+
+
+def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_counts, max_points,
+              coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed):
+    import time
+    t0 = time.perf_counter()
+    pose = _POSES[mode]
+    k = 3 if mode in PLANES else 6
+    A = as_population(A, "A", allow_empty=True)
+    B = as_population(B, "B", allow_empty=True)
+    eps = check_eps(eps)
+    wa = as_weights(weights_a, len(A), "weights_a")
+    wb = as_weights(weights_b, len(B), "weights_b")
+    if prior is None:
+        prior = np.eye(4)
+    prior = np.asarray(prior, dtype=float)
+    if prior.shape != (4, 4) or not np.allclose(prior[:3, :3] @ prior[:3, :3].T, np.eye(3), atol=1e-6):
+        raise PopulationError("prior must be a 4×4 rigid transform")
+    center = _params_from_T(mode, prior)
+    half = np.asarray(window, dtype=float).reshape(-1)
+    if half.shape != (k,) or not np.all(np.isfinite(half)) or np.any(half < 0):
+        raise PopulationError(f"window must be {k} non-negative half-widths, got {window}")
+
+    # --- well-formed but unusable input: report, do not raise
+    na, nb = int((wa > 0).sum()), int((wb > 0).sum())
+    if min(na, nb) < min_flies:
+        return _fail(mode, k, f"too few flies: A has {na}, B has {nb} (need at least {min_flies} each)")
+    radius = float(np.sqrt(np.mean(np.sum((A - np.average(A, 0, wa)) ** 2, 1))))
+    spread_b = float(np.sqrt(np.linalg.eigvalsh(np.cov(B[wb > 0].T)).max()))
+    if spread_b < 4 * eps or radius < 4 * eps:
+        return _fail(mode, k, f"degenerate populations: spread {min(spread_b, radius):.3g} m is "
+                              f"not larger than eps={eps} m")
+
+    rng = np.random.default_rng(seed)
+    live = np.flatnonzero(wa > 0)
+    fine_idx = live if len(live) <= max_points else np.sort(rng.choice(live, max_points, replace=False))
+    coarse_idx = fine_idx if len(fine_idx) <= coarse_points else np.sort(
+        rng.choice(fine_idx, coarse_points, replace=False))
+
+    # --- candidate lattice and the field that covers every place A can reach under it
+    cand, lat_shape = _lattice(center, half, lattice_counts)
+    poses = [pose(p) for p in cand]
+    lo, hi = _reach_bounds(A[fine_idx], poses)
+    pad = 0.02 * float(np.max(hi - lo))
+    opts = dict(field_options or {})
+    fld = PseudoDistanceField(B, eps, weights_b=wb, bounds=(lo - pad, hi + pad), **opts)
+    t_field = time.perf_counter() - t0
+
+    # --- 1. coarse lattice on the far (smoothed) field
+    Ac, wac = A[coarse_idx], wa[coarse_idx]
+    Rs = np.stack([P[0] for P in poses])
+    ts = np.stack([P[1] for P in poses])
+    coarse = fld.batch_sums(Ac, wac, Rs, ts, near=False) * (fld.weight_sum / wac.sum())
+    evals = len(cand)
+    grid_vals = coarse.reshape(lat_shape)
+    is_min = grid_vals == scipy.ndimage.minimum_filter(grid_vals, size=3, mode="nearest")
+    seeds = np.flatnonzero(is_min.ravel())
+    seeds = seeds[np.argsort(coarse[seeds])][:4]
+    contrast = float(np.median(coarse) - coarse[seeds[0]])
+
+    scale = np.where(half > 0, half, 1.0)
+    free = half > 0
+    lo_b = np.where(free, -1.0, 0.0)
+    hi_b = np.where(free, 1.0, 0.0)
+
+    def polish(obj, p_start, maxiter):
+        x0 = np.clip((p_start - center) / scale, -1, 1)
+
+        def fun(x):
+            v, g = obj.value_and_grad(center + x * scale)
+            return v, g * scale
+        x, v = _bfgs_box(fun, x0, lo_b, hi_b, maxiter)
+        return center + x * scale, v
+
+    # --- 2. polish the lattice minima on the smoothed δ
+    smooth = _Objective(fld, Ac, wac, pose, near=False)
+    polished = [polish(smooth, cand[s], 30) for s in seeds]
+    polished.sort(key=lambda pv: pv[1])
+    # distinct minima only (closer than one lattice step in every scaled coordinate = same basin)
+    step = np.where(np.asarray(lattice_counts) > 1, 2.0 / (np.maximum(lattice_counts, 2) - 1), 1.0)
+    distinct = []
+    for p, v in polished:
+        if all(np.any(np.abs((p - q) / scale) > step) for q, _ in distinct):
+            distinct.append((p, v))
+
+    # --- 3. refine the best two on the full δ
+    full = _Objective(fld, A[fine_idx], wa[fine_idx], pose, near=True)
+    # the runner-up is worth refining only if, smoothed, it is already nearly as deep as the best
+    rivals = [pv for pv in distinct[1:2] if pv[1] - distinct[0][1] < 3 * (1 - ambiguity_ratio) * contrast]
+    refined = [polish(full, p, 60) for p, _ in distinct[:1] + rivals]
+    refined.sort(key=lambda pv: pv[1])
+    p_best, d_best = refined[0]
+    evals += smooth.count + full.count
+    R, t = pose(p_best)
+    T = make_transform(R, t)
+    ambiguity = float("nan")
+    if len(refined) > 1 and np.any(np.abs((refined[1][0] - p_best) / scale) > step):
+        ambiguity = float(np.clip(1.0 - (refined[1][1] - d_best) / max(contrast, 1e-300), 0, 1))
+
+    # --- curvature, covariance, checks
+    L = max(radius, 1e-9)
+    fd = np.array([min(0.25 * fld.rc, 0.02) if (mode == "6dof" and i < 3) or (mode in PLANES and i < 2)
+                   else min(0.25 * fld.rc, 0.02) / L for i in range(k)])
+    H = np.zeros((k, k))
+    for i in range(k):
+        e = np.zeros(k)
+        e[i] = fd[i]
+        gp = full.value_and_grad(p_best + e)[1]
+        gm = full.value_and_grad(p_best - e)[1]
+        H[i] = (gp - gm) / (2 * fd[i])
+    H = 0.5 * (H + H.T)
+    _, Jf = full.per_fly(p_best)
+    Jf = Jf - Jf.mean(0)
+    evals += 2 * k + 1
+    rot = np.array([i >= (2 if mode in PLANES else 3) for i in range(k)])
+    units = np.where(rot, L, 1.0)               # rotations expressed as metres of arc at radius L
+    Hs = H / np.outer(units, units)
+    eig = np.linalg.eigvalsh(Hs)
+    # Stiffness reference: the populations' own stiffest direction under a free 3-D translation (so a
+    # planar search over a ground plane, flat in all three of its parameters, is still seen as flat).
+    H3 = full.translation_hessian(p_best, fd[0])
+    evals += 6
+    stiff = max(eig[-1], float(np.linalg.eigvalsh(H3)[-1]))
+    flatness = float(eig[0] / stiff) if stiff > 0 else float("nan")
+    timings = dict(field_ms=1e3 * t_field, total_ms=1e3 * (time.perf_counter() - t0))
+    common = dict(T=T, params=p_best, delta=d_best, mode=mode, hessian=H, flatness=flatness,
+                  ambiguity=ambiguity, evaluations=evals, timings=timings)
+    at_edge = free & (np.abs(p_best - center) > 0.99 * half)
+    if np.any(at_edge):
+        return _fail(reason=f"minimum on the search window boundary in parameter(s) "
+                            f"{list(np.flatnonzero(at_edge))}: widen the window or improve the prior",
+                     k=k, **common)
+    if eig[0] <= 0:
+        return _fail(reason="not a minimum: the Hessian of δ is not positive definite (flat or saddle)",
+                     k=k, **common)
+    if flatness < flat_ratio:
+        v = np.linalg.eigh(Hs)[1][:, 0]
+        return _fail(reason=f"flat minimum: curvature along {np.round(v, 2).tolist()} is "
+                            f"{flatness:.2g} of the strongest (threshold {flat_ratio})", k=k, **common)
+    if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
+        return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
+                            f"nearly as deep ({ambiguity:.2f} of the best's depth)", k=k, **common)
+    Hi = np.linalg.inv(H)
+    cov = Hi @ (Jf.T @ Jf) @ Hi
+    cov = 0.5 * (cov + cov.T)
+    return RegistrationResult(covariance=cov, ok=True, reason="", **common)
+
+
+def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, np.deg2rad(10.0)),
+                    weights_a=None, weights_b=None, eps: float = 0.1, lattice=(7, 7, 7),
+                    max_points: int = 1000, coarse_points: int = 192, min_flies: int = 20,
+                    flat_ratio: float = 0.02, ambiguity_ratio: float = 0.9, field_options=None,
+                    seed: int = 0) -> RegistrationResult:
+    """Planar f minimising δ(A, f(B)): params (x, z, θ) for ``plane="optical"``, (x, y, θ) for "body".
+
+    prior: 4×4 initial guess of f (e.g. from odometry; identity when None), projected onto the plane.
+    window: half-widths of the search box around the prior's params (metres, metres, radians); a zero
+    half-width pins that parameter.  weights_a / weights_b: per-fly weights (δ_w), e.g. from
+    `depth_weights`.  max_points: flies of A used for the fine stages (random subset, fixed seed);
+    coarse_points: flies used on the lattice.  field_options: passed to PseudoDistanceField.
+    Returns a RegistrationResult; see the module docstring for the covariance and the failure rules.
+    """
+    if plane not in PLANES:
+        raise PopulationError(f"plane must be one of {PLANES}, got {plane!r}")
+    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, lattice, max_points,
+                     coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed)
+
+
+def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weights_a=None,
+                  weights_b=None, eps: float = 0.1, lattice=(5, 5, 5, 3, 3, 3), max_points: int = 1000,
+                  coarse_points: int = 128, min_flies: int = 20, flat_ratio: float = 0.02,
+                  ambiguity_ratio: float = 0.9, field_options=None, seed: int = 0) -> RegistrationResult:
+    """Full rigid f minimising δ(A, f(B)): params (tx, ty, tz, ωx, ωy, ωz), ω a rotation vector.
+
+    The window is around the prior's params (ω of the prior's rotation); otherwise as register_planar.
+    """
+    return _register("6dof", A, B, eps, prior, window, weights_a, weights_b, lattice, max_points,
+                     coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed)

@@ -1,0 +1,132 @@
+"""Registration of fly populations: recovery of known displacements, failures, covariance shape."""
+import numpy as np
+import pytest
+
+from common.geometry import (R_BODY_OPTICAL, invert, make_transform, planar_pose, rot_y, so3_exp,
+                             transform_points)
+from common.registration import PopulationError, register_6dof, register_planar
+from common.registration import scenes
+
+
+def noisy_replica(A, T_f, rng, noise=0.02, keep=0.9):
+    """B such that f(B) ≈ A: A moved by f⁻¹, jittered, shuffled, with some flies missing."""
+    B = transform_points(invert(T_f), A) + rng.normal(0, noise, A.shape)
+    idx = rng.permutation(len(A))[: int(keep * len(A))]
+    return B[idx]
+
+
+@pytest.fixture(scope="module")
+def street_flies():
+    rng = np.random.default_rng(10)
+    scene = scenes.street_scene(rng)
+    A, _, _ = scenes.observe(scene, np.eye(4), scenes.deep_rig(), 3000, rng, max_depth=25.0)
+    return A
+
+
+def test_planar_optical_recovers_known_motion_of_a_noisy_replica(street_flies):
+    rng = np.random.default_rng(11)
+    x, z, th = 0.3, 0.7, np.deg2rad(4.0)
+    T_f = make_transform(rot_y(th), [x, 0, z])
+    B = noisy_replica(street_flies, T_f, rng)
+    res = register_planar(street_flies, B, plane="optical")
+    assert res.ok, res.reason
+    assert res.params[0] == pytest.approx(x, abs=0.03)
+    assert res.params[1] == pytest.approx(z, abs=0.03)
+    assert res.params[2] == pytest.approx(th, abs=np.deg2rad(0.3))
+    np.testing.assert_allclose(res.T, make_transform(rot_y(res.params[2]), [res.params[0], 0, res.params[1]]))
+    # The covariance is a proper covariance, and the truth is within a plausible distance of it.
+    assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+    assert res.delta > 0
+
+
+def test_planar_body_frame_recovers_known_motion(street_flies):
+    rng = np.random.default_rng(12)
+    A_body = street_flies @ R_BODY_OPTICAL.T          # same flies, REP-103 body axes (z up)
+    T_f = planar_pose(0.6, -0.25, np.deg2rad(-6.0))
+    B = noisy_replica(A_body, T_f, rng)
+    res = register_planar(A_body, B, plane="body")
+    assert res.ok, res.reason
+    np.testing.assert_allclose(res.params, [0.6, -0.25, np.deg2rad(-6.0)], atol=0.03)
+
+
+def test_6dof_recovers_known_motion(street_flies):
+    rng = np.random.default_rng(13)
+    w = np.array([0.03, -0.06, 0.02])
+    t = np.array([0.2, -0.1, 0.5])
+    T_f = make_transform(so3_exp(w), t)
+    B = noisy_replica(street_flies, T_f, rng)
+    res = register_6dof(street_flies, B)
+    assert res.ok, res.reason
+    np.testing.assert_allclose(res.params[:3], t, atol=0.04)
+    np.testing.assert_allclose(res.params[3:], w, atol=np.deg2rad(0.4))
+    assert res.covariance.shape == (6, 6)
+
+
+def test_prior_and_window_from_odometry(street_flies):
+    rng = np.random.default_rng(14)
+    T_f = make_transform(rot_y(np.deg2rad(25.0)), [1.5, 0, 2.0])   # outside the default window
+    B = noisy_replica(street_flies, T_f, rng)
+    prior = make_transform(rot_y(np.deg2rad(23.0)), [1.4, 0, 2.2])
+    res = register_planar(street_flies, B, prior=prior, window=(0.5, 0.5, np.deg2rad(5)))
+    assert res.ok, res.reason
+    np.testing.assert_allclose(res.params, [1.5, 2.0, np.deg2rad(25.0)], atol=0.03)
+    # Without the prior the truth is outside the window: reported, not silently wrong.
+    bad = register_planar(street_flies, B)
+    assert not bad.ok and "boundary" in bad.reason
+
+
+def test_plane_sliding_along_itself_is_reported_flat():
+    rng = np.random.default_rng(15)
+
+    def ground(n):  # flies on the ground plane (y = 1.5 m below an optical camera), 2–30 m ahead
+        return np.column_stack([rng.uniform(-10, 10, n), 1.5 + rng.normal(0, 0.02, n), rng.uniform(2, 30, n)])
+    # Planar motion slides the ground along itself: x, z and θ about the plane's normal are all free.
+    # Two independent populations (a replica would carry its random texture, which does register).
+    A = ground(3000)
+    B = transform_points(invert(make_transform(rot_y(0.03), [0.3, 0, 0.5])), ground(3000))
+    res = register_planar(A, B, plane="optical")
+    assert not res.ok
+    assert "flat" in res.reason or "boundary" in res.reason
+    assert res.flatness < 0.02
+
+
+@pytest.mark.parametrize("A,B,word", [
+    (np.zeros((0, 3)), np.ones((100, 3)), "too few"),
+    (np.random.default_rng(0).normal(size=(100, 3)), np.zeros((5, 3)), "too few"),
+    (np.random.default_rng(0).normal(size=(100, 3)), np.zeros((100, 3)), "degenerate"),
+])
+def test_empty_or_degenerate_input_is_reported_not_raised(A, B, word):
+    for res in (register_planar(A, B), register_6dof(A, B)):
+        assert not res.ok
+        assert word in res.reason
+        assert np.all(np.isnan(res.covariance))
+
+
+def test_corridor_constrains_lateral_motion_better_than_longitudinal():
+    rng = np.random.default_rng(16)
+
+    def corridor(n):  # the paper's corridor: two parallel walls x = ±1 m, 2–30 m ahead
+        side = rng.choice([-1.0, 1.0], n)
+        return np.column_stack([side + rng.normal(0, 0.01, n), rng.uniform(-1.2, 1.2, n), rng.uniform(2, 30, n)])
+    A = corridor(3000)
+    B = transform_points(invert(make_transform(rot_y(0.02), [0.1, 0, 0.4])), corridor(3000))
+    res = register_planar(A, B, plane="optical", flat_ratio=0.0)
+    assert res.ok, res.reason
+    assert res.params[0] == pytest.approx(0.1, abs=0.02)
+    sx, sz, _ = res.std
+    assert sz > 5 * sx
+    # With the default threshold, a corridor this featureless is flagged as flat along z.
+    flagged = register_planar(A, B, plane="optical")
+    assert not flagged.ok and "flat" in flagged.reason
+
+
+def test_malformed_input_raises():
+    A = np.random.default_rng(0).normal(size=(100, 3))
+    with pytest.raises(PopulationError, match="plane"):
+        register_planar(A, A, plane="sideways")
+    with pytest.raises(PopulationError, match="shape"):
+        register_planar(A[:, :2], A)
+    with pytest.raises(PopulationError, match="prior"):
+        register_planar(A, A, prior=np.ones((4, 4)))
+    with pytest.raises(PopulationError, match="window"):
+        register_6dof(A, A, window=(1, 1, 1))
