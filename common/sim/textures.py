@@ -259,7 +259,7 @@ def build_texture(spec: TextureSpec) -> np.ndarray:
     return np.ascontiguousarray(_BUILDERS[spec.kind](spec, rng), dtype=np.float32)
 
 
-def mip_pyramid(img: np.ndarray, min_size: int = 2) -> list[np.ndarray]:
+def mip_pyramid(img: np.ndarray, min_size: int = 1) -> list[np.ndarray]:
     """Mip levels of an image: level k is the 2^k box-filtered reduction (dimensions stay ≥ min_size)."""
     levels = [img]
     while min(levels[-1].shape[:2]) >= 2 * min_size and levels[-1].shape[0] % 2 == 0 and levels[-1].shape[1] % 2 == 0:
