@@ -42,6 +42,12 @@ def compose_jacobian_first(a, b) -> np.ndarray:
                      [0.0, 0.0, 1.0]])
 
 
+def compose_jacobian_second(a) -> np.ndarray:
+    """∂(a ⊕ b)/∂b."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def drive_step(pose, cov, dl: float, dr: float, track_width: float, var_left: float, var_right: float):
     """Advance a differential-drive pose by wheel travels ``dl``, ``dr`` (metres) and propagate its covariance.
 
@@ -90,9 +96,3 @@ def to_transform(p) -> np.ndarray:
 def from_transform(T) -> np.ndarray:
     return np.array(planar_from_transform(np.asarray(T, float)))
 
-
-def nearest_psd(M) -> np.ndarray:
-    """Symmetric positive semi-definite matrix nearest to M (negative eigenvalues clipped to 0)."""
-    S = 0.5 * (np.asarray(M, float) + np.asarray(M, float).T)
-    w, V = np.linalg.eigh(S)
-    return (V * np.clip(w, 0.0, None)) @ V.T

@@ -1,0 +1,124 @@
+"""Sonar fitness term for the fly evolver: flies in a beam's free space lose, flies at its echo range win.
+
+A sonar echo at range r says two things about the cone of its beam: nothing reflective lies nearer than
+r (free space), and something lies at r.  So, for a fly at distance d from a transducer and inside its
+beam (an elliptic cone around the transducer's horizontal axis: ``beam_width/2`` horizontally and
+``vertical_half_angle_rad`` vertically, by default the same),
+
+* reward   ``exp(-½((d − r)/σ)²)``                 with σ = ``echo_sigma_m`` + ``echo_sigma_rel``·r,
+* penalty  ``−clip((r − d − σ)/σ, 0, 1)``           (0 within σ of the echo, −1 from 2σ nearer),
+
+and nothing beyond r + 3σ (the beam may be occluded there), nearer than the ring's minimum range (blind)
+or outside every beam.  Beams without an echo say nothing by default: a smooth wall seen obliquely
+returns no echo, so "no echo" is not "free" (``no_echo_is_free`` turns that reading on).  Contributions
+of overlapping beams add up and the total is clipped to [−1, 1]; the evolver multiplies it by its weight
+(image fitness lies in [0, 1), so a weight around 0.3–1 makes sonar matter without overriding vision).
+
+Everything is vectorised over flies × beams (numpy, float32).  The flies arrive in the LEFT OPTICAL
+camera frame; ``T_base_camera`` (StereoCalibration.T_base_camera, possibly composed with the robot's
+motion between the scan and the frame) brings them into base_link, where the scan is expressed.
+
+Use with the evolver::
+
+    term = SonarTerm(SonarTermConfig(height_m=0.25))
+    evolver.add_fitness_term("sonar", term, weight=0.5)
+    ...
+    term.update(scan_in_base_link, calib.T_base_camera)   # on every new scan; evolver rescoring follows
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.fusion.sonar import SonarScanError, check_scan
+from common.messages import BASE_LINK, SonarScan
+
+
+@dataclass(frozen=True)
+class SonarTermConfig:
+    height_m: float = 0.25                  # transducer ring height in base_link (not on the wire)
+    echo_sigma_m: float = 0.05
+    echo_sigma_rel: float = 0.01
+    vertical_half_angle_rad: float | None = None   # None: same as the horizontal half beam width
+    no_echo_is_free: bool = False
+
+    def __post_init__(self):
+        if not np.isfinite(self.height_m):
+            raise SonarScanError("height_m must be finite")
+        if not (self.echo_sigma_m > 0 and self.echo_sigma_rel >= 0):
+            raise SonarScanError("echo_sigma_m must be > 0 and echo_sigma_rel >= 0")
+        v = self.vertical_half_angle_rad
+        if v is not None and not (0 < v < np.pi / 2):
+            raise SonarScanError(f"vertical_half_angle_rad must be in (0, π/2), got {v}")
+
+
+def sonar_fitness(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarScan,
+                  config: SonarTermConfig | None = None) -> np.ndarray:
+    """(N,) float32 additive fitness of flies (N, 3) in the camera optical frame against a base_link scan."""
+    cfg = config or SonarTermConfig()
+    pos = np.asarray(positions, dtype=np.float32)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions must be (N, 3), got {pos.shape}")
+    T = np.asarray(T_base_camera, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError("T_base_camera must be a finite 4×4 transform")
+    if scan.header.frame_id != BASE_LINK:
+        raise SonarScanError(f"the sonar term needs a scan in {BASE_LINK}, got {scan.header.frame_id!r} "
+                             "(use common.fusion.sonar.scan_in_base)")
+    check_scan(scan)
+    poses = np.asarray(scan.transducer_poses, np.float64)
+    ranges = np.asarray(scan.ranges, np.float64)
+    use = np.isfinite(ranges) | cfg.no_echo_is_free
+    if len(pos) == 0 or not np.any(use):
+        return np.zeros(len(pos), np.float32)
+    poses, ranges = poses[use], ranges[use]
+    r = np.where(np.isfinite(ranges), ranges, scan.max_range_m).astype(np.float32)          # (K,)
+    echo = np.isfinite(ranges)
+
+    # Flies into base_link, then into every beam's frame (x along the axis, y left, z up).
+    p = pos @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)                  # (N, 3)
+    c, s = np.cos(poses[:, 2]).astype(np.float32), np.sin(poses[:, 2]).astype(np.float32)
+    dx = p[:, 0:1] - poses[:, 0].astype(np.float32)                                          # (N, K)
+    dy = p[:, 1:2] - poses[:, 1].astype(np.float32)
+    dz = p[:, 2:3] - np.float32(cfg.height_m)
+    ax = c * dx + s * dy
+    lat = -s * dx + c * dy
+    d = np.sqrt(ax * ax + lat * lat + dz * dz)
+
+    half_h = 0.5 * scan.beam_width_rad
+    half_v = cfg.vertical_half_angle_rad or half_h
+    az = np.arctan2(lat, ax)
+    el = np.arctan2(dz, np.sqrt(ax * ax + lat * lat))
+    inside = (ax > 0) & ((az / half_h) ** 2 + (el / half_v) ** 2 <= 1.0) & (d >= scan.min_range_m)
+
+    sigma = np.float32(cfg.echo_sigma_m) + np.float32(cfg.echo_sigma_rel) * r                # (K,)
+    u = (d - r) / sigma
+    reward = np.where(echo & (u <= 3.0), np.exp(-0.5 * u * u), 0.0)
+    penalty = -np.clip((-u - 1.0), 0.0, 1.0)
+    score = np.where(inside, reward + penalty, 0.0).sum(axis=1)
+    return np.clip(score, -1.0, 1.0).astype(np.float32)
+
+
+class SonarTerm:
+    """Callable fitness term ``fn(positions) -> (N,)`` holding the latest scan (evolver plug-in form).
+    Before the first :meth:`update` (or after :meth:`clear`) it returns zeros."""
+
+    def __init__(self, config: SonarTermConfig | None = None):
+        self.config = config or SonarTermConfig()
+        self.scan: SonarScan | None = None
+        self.T_base_camera: np.ndarray | None = None
+
+    def update(self, scan: SonarScan, T_base_camera: np.ndarray) -> None:
+        if scan.header.frame_id != BASE_LINK:
+            raise SonarScanError(f"SonarTerm.update needs a scan in {BASE_LINK}, got {scan.header.frame_id!r}")
+        check_scan(scan)
+        self.scan, self.T_base_camera = scan, np.array(T_base_camera, float)
+
+    def clear(self) -> None:
+        self.scan = None
+
+    def __call__(self, positions: np.ndarray) -> np.ndarray:
+        if self.scan is None:
+            return np.zeros(len(positions), np.float32)
+        return sonar_fitness(positions, self.T_base_camera, self.scan, self.config)
