@@ -15,6 +15,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("services.replay", "publish a recording on the bus as a live source would"),
     "info": ("deploy.commands.info", "summarise a recording: channels, counts, duration, rates"),
     "sim": ("services.sim", "run the world simulator as a live source"),
+    "simulate": ("deploy.commands.simulate", "write a simulated run to a recording, offline and deterministic"),
     "camera": ("services.camera", "run a real stereo camera (or video files) as a live source"),
     "calibrate": ("deploy.commands.calibrate", "stereo calibration from chessboard image pairs"),
     "import": ("deploy.commands.importer", "convert a public dataset (kitti, euroc, middlebury) to a recording"),

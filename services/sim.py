@@ -19,8 +19,8 @@ import time
 import numpy as np
 
 from common import messages as m
-from common.images import make_frame
 from common.sim import Simulator, load_scenario
+from common.sim.bus_messages import camera_messages, odometry_message, sonar_message, target_message
 from common.sim.scenario import ScenarioError, scenario_path
 from common.sim.sensors import OdometryReading, SonarReading
 from common.sim.simulator import CameraDue
@@ -98,9 +98,9 @@ def body(node, args) -> int:
 
     def publish_static(now_ns: int) -> None:
         calib_pub.publish(m.calibration_to_msg(calib, 0, now_ns))
-        if scenario.target is not None:
-            target_pub.publish(m.Target(x=float(scenario.target[0]), y=float(scenario.target[1]), radius_m=0.4,
-                                        header=m.header(0, now_ns, m.MAP)))
+        target = target_message(scenario, now_ns)
+        if target is not None:
+            target_pub.publish(target)
 
     step = 0.01
     while not node.stopping:
@@ -124,25 +124,14 @@ def body(node, args) -> int:
         for ev in events:
             stamp = t0_ns + ev.stamp_ns
             if isinstance(ev, OdometryReading):
-                pubs["odom/wheels"].publish(m.WheelOdometry(
-                    wheel_speeds=np.asarray(ev.wheel_speeds, float), ticks=np.asarray(ev.ticks, np.int64),
-                    ticks_per_rev=float(ev.ticks_per_rev), wheel_radius_m=float(ev.wheel_radius),
-                    track_width_m=float(ev.track_width), pose_xyyaw=np.asarray(ev.pose_xyyaw_integrated, float),
-                    header=m.header(0, stamp, m.BASE_LINK)))
+                pubs["odom/wheels"].publish(odometry_message(ev, stamp))
             elif isinstance(ev, SonarReading):
-                pubs["sonar/scan"].publish(m.SonarScan(
-                    transducer_poses=np.asarray(ev.transducer_poses, float), ranges=np.asarray(ev.ranges, np.float32),
-                    beam_width_rad=float(ev.beam_width), min_range_m=float(ev.min_range),
-                    max_range_m=float(ev.max_range), header=m.header(0, stamp, m.BASE_LINK)))
+                pubs["sonar/scan"].publish(sonar_message(ev, stamp))
             elif isinstance(ev, CameraDue):
                 images = sim.render(ev.stamp_ns)
                 frame_seq += 1
-                pubs["stereo/frame"].publish(make_frame(images.left, images.right, frame_seq, stamp, args.encoding))
-                pubs["truth/pose"].publish(m.pose_msg(images.T_map_base, seq=frame_seq, stamp_ns=stamp,
-                                                      source_seq=frame_seq))
-                if args.depth:
-                    pubs["truth/depth"].publish(m.DepthImage(depth=images.depth, header=m.header(
-                        frame_seq, stamp, m.CAMERA_LEFT_OPTICAL)))
+                for stream, msg in camera_messages(images, frame_seq, stamp, args.encoding, args.depth).items():
+                    pubs[stream].publish(msg)
                 truth_stamps.append(stamp)
                 truth_poses.append(images.T_map_base)
                 node.progress += 1
