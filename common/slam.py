@@ -1,0 +1,222 @@
+"""Fly-based SLAM: localise each new fly population against a map of keyframe populations.
+
+The paper ("Flies open a door to SLAM") registers two consecutive populations; errors then accumulate
+like odometry. Here every population is registered against a *local map*: the keyframe populations
+nearest to the predicted pose, merged in the map frame. Keyframes are added when the robot has moved
+or turned enough since the nearest one, voxel-thinned, and the map keeps a bounded window of them, so
+memory stays flat on long runs.
+
+Per update (no I/O; the localiser service and ``flyslam eval`` both drive this class):
+
+1. keep the population's fittest flies (``keep_fraction``) nearer than ``max_depth_m``, expressed in
+   base_link;
+2. predict the pose: ``T_map_base = T_map_odom · T_odom_base`` from odometry, or a constant-velocity
+   model when there is none (image-only datasets);
+3. register the flies (A) against the local map expressed in the predicted base frame (B), in the
+   plane (x, y, θ), within a window around the prediction;
+4. accept the result when the registration is well-posed and the correction plausible; then the
+   map→odom transform absorbs the correction (REP-105). A rejected registration leaves map→odom as it
+   was — odometry carries on — and the estimate says why.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.geometry import invert, make_transform, planar_from_transform, planar_pose, transform_points
+from common.registration import register_planar
+
+
+class LocaliserError(ValueError):
+    """Malformed input to the localiser (shapes, NaN poses)."""
+
+
+@dataclass
+class LocaliserConfig:
+    keep_fraction: float = 0.7          # fittest fraction of the population used
+    max_depth_m: float = 8.0            # flies farther than this (camera z) are too uncertain to use
+    min_height_m: float = 0.05          # drop flies on the floor: a plane under a planar search is flat
+    max_height_m: float = 3.0
+    voxel_m: float = 0.04               # keyframe points are thinned to one per voxel
+    keyframe_distance_m: float = 0.6
+    keyframe_angle_rad: float = np.deg2rad(15.0)
+    max_keyframes: int = 40             # window of keyframes kept (oldest dropped)
+    local_keyframes: int = 4            # nearest keyframes merged into the local map
+    window: tuple = (0.25, 0.25, np.deg2rad(8.0))   # search half-widths around the prediction
+    max_map_points: int = 6000
+    min_flies: int = 150
+    eps: float = 0.05
+    max_correction_m: float = 0.2       # a correction larger than this w.r.t. odometry is rejected
+    max_correction_rad: float = np.deg2rad(6.0)
+
+
+@dataclass
+class Keyframe:
+    id: int
+    stamp_ns: int
+    T_map_base: np.ndarray
+    points: np.ndarray        # (K, 3) float32 in this keyframe's base_link
+    fitness: np.ndarray       # (K,) float32
+
+
+@dataclass
+class Estimate:
+    stamp_ns: int
+    T_map_base: np.ndarray
+    T_map_odom: np.ndarray
+    covariance: np.ndarray    # 6×6 over (x, y, z, roll, pitch, yaw)
+    status: str               # 'ok', 'initialised', 'rejected: ...', 'odometry only: ...'
+    registered: bool
+    keyframe_added: bool = False
+    delta: float = float("nan")
+
+
+@dataclass
+class _Tracking:
+    last_T_map_base: np.ndarray | None = None
+    last_stamp: int | None = None
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))   # planar (vx, vy, ω) in the body
+
+
+def voxel_thin(points: np.ndarray, fitness: np.ndarray, voxel: float):
+    """Keep the fittest point of each voxel (vectorised: sort by fitness, unique voxel keys)."""
+    if len(points) == 0:
+        return points, fitness
+    order = np.argsort(-fitness, kind="stable")
+    keys = np.floor(points[order] / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    keep = order[np.sort(first)]
+    return points[keep], fitness[keep]
+
+
+class FlyLocaliser:
+    def __init__(self, T_base_camera: np.ndarray, config: LocaliserConfig | None = None, seed: int = 0):
+        self.T_base_camera = np.asarray(T_base_camera, dtype=float)
+        self.config = config or LocaliserConfig()
+        self.keyframes: deque[Keyframe] = deque(maxlen=self.config.max_keyframes)
+        self.T_map_odom = np.eye(4)
+        self._track = _Tracking()
+        self._next_id = 0
+        self._rng = np.random.default_rng(seed)
+
+    # ------------------------------------------------------------------------------ selection
+    def select_flies(self, positions_cam: np.ndarray, fitness: np.ndarray):
+        """Fittest, near enough, off the floor: (points in base_link (M, 3), fitness (M,))."""
+        P = np.asarray(positions_cam, dtype=np.float64)
+        f = np.asarray(fitness, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3 or f.shape != (len(P),):
+            raise LocaliserError(f"population must be (N,3) with (N,) fitness, got {P.shape} and {f.shape}")
+        c = self.config
+        ok = np.isfinite(P).all(axis=1) & np.isfinite(f) & (P[:, 2] > 0) & (P[:, 2] < c.max_depth_m)
+        P, f = P[ok], f[ok]
+        if len(P) == 0:
+            return np.zeros((0, 3)), np.zeros(0)
+        keep = np.argsort(-f)[: max(1, int(len(f) * c.keep_fraction))]
+        base = transform_points(self.T_base_camera, P[keep])
+        band = (base[:, 2] > c.min_height_m) & (base[:, 2] < c.max_height_m)
+        return base[band], f[keep][band]
+
+    # ------------------------------------------------------------------------------------ map
+    def local_map(self, T_map_base: np.ndarray) -> np.ndarray:
+        """Points of the nearest keyframes, in the map frame (subsampled to max_map_points)."""
+        if not self.keyframes:
+            return np.zeros((0, 3))
+        here = T_map_base[:2, 3]
+        dist = np.array([np.linalg.norm(kf.T_map_base[:2, 3] - here) for kf in self.keyframes])
+        nearest = np.argsort(dist)[: self.config.local_keyframes]
+        pts = np.concatenate([transform_points(self.keyframes[i].T_map_base, self.keyframes[i].points.astype(np.float64))
+                              for i in nearest])
+        if len(pts) > self.config.max_map_points:
+            pts = pts[self._rng.choice(len(pts), self.config.max_map_points, replace=False)]
+        return pts
+
+    def _needs_keyframe(self, T_map_base: np.ndarray) -> bool:
+        if not self.keyframes:
+            return True
+        x, y, yaw = planar_from_transform(T_map_base)
+        for kf in self.keyframes:
+            kx, ky, kyaw = planar_from_transform(kf.T_map_base)
+            dyaw = abs((yaw - kyaw + np.pi) % (2 * np.pi) - np.pi)
+            if np.hypot(x - kx, y - ky) < self.config.keyframe_distance_m and dyaw < self.config.keyframe_angle_rad:
+                return False
+        return True
+
+    def _add_keyframe(self, stamp_ns: int, T_map_base: np.ndarray, points: np.ndarray, fitness: np.ndarray):
+        pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
+        self.keyframes.append(Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32),
+                                       fit.astype(np.float32)))
+        self._next_id += 1
+
+    # ------------------------------------------------------------------------------ prediction
+    def _predict(self, stamp_ns: int, T_odom_base: np.ndarray | None) -> tuple[np.ndarray, str]:
+        if T_odom_base is not None:
+            return self.T_map_odom @ T_odom_base, "odometry"
+        tr = self._track
+        if tr.last_T_map_base is None:
+            return np.eye(4), "none"
+        dt = (stamp_ns - tr.last_stamp) * 1e-9
+        vx, vy, w = tr.velocity * dt
+        return tr.last_T_map_base @ planar_pose(vx, vy, w), "constant velocity"
+
+    def _track_update(self, stamp_ns: int, T_map_base: np.ndarray) -> None:
+        tr = self._track
+        if tr.last_T_map_base is not None and stamp_ns > tr.last_stamp:
+            dt = (stamp_ns - tr.last_stamp) * 1e-9
+            rel = invert(tr.last_T_map_base) @ T_map_base
+            x, y, yaw = planar_from_transform(rel)
+            tr.velocity = np.array([x, y, yaw]) / dt
+        tr.last_T_map_base, tr.last_stamp = T_map_base.copy(), stamp_ns
+
+    # ---------------------------------------------------------------------------------- update
+    def update(self, stamp_ns: int, positions_cam: np.ndarray, fitness: np.ndarray,
+               T_odom_base: np.ndarray | None = None) -> Estimate:
+        """Localise one population (left optical frame) seen at ``stamp_ns``; see the module doc."""
+        if T_odom_base is not None and not np.all(np.isfinite(T_odom_base)):
+            raise LocaliserError("T_odom_base is not finite")
+        c = self.config
+        points, fit = self.select_flies(positions_cam, fitness)
+        T_pred, source = self._predict(stamp_ns, T_odom_base)
+        cov_pred = np.diag([0.05, 0.05, 1e-6, 1e-6, 1e-6, 0.02]) ** 2
+
+        def finish(T_map_base, status, registered, cov, delta=float("nan")):
+            added = False
+            if (registered or not self.keyframes) and len(points) >= c.min_flies and self._needs_keyframe(T_map_base):
+                self._add_keyframe(stamp_ns, T_map_base, points, fit)
+                added = True
+            if T_odom_base is not None:
+                self.T_map_odom = T_map_base @ invert(T_odom_base)
+            self._track_update(stamp_ns, T_map_base)
+            return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
+
+        if not self.keyframes:
+            if len(points) < c.min_flies:
+                return finish(T_pred, f"odometry only: {len(points)} usable flies to start a map", False, cov_pred)
+            return finish(T_pred, "initialised", False, np.zeros((6, 6)))
+        if len(points) < c.min_flies:
+            return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies})", False, cov_pred)
+        # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
+        B = transform_points(invert(T_pred), self.local_map(T_pred))
+        window = c.window if source != "none" else (1.0, 1.0, np.deg2rad(20))
+        res = register_planar(points, B, plane="body", window=window, eps=c.eps, weights_a=fit / fit.max(),
+                              seed=int(stamp_ns % (2**31)))
+        if not res.ok:
+            return finish(T_pred, f"rejected: {res.reason}", False, cov_pred, res.delta)
+        # res.T maps B's frame (predicted base) into A's frame (true base): T_true_pred.
+        correction = invert(res.T)          # T_pred_true
+        dx, dy, dyaw = planar_from_transform(correction)
+        if source == "odometry" and (np.hypot(dx, dy) > c.max_correction_m or abs(dyaw) > c.max_correction_rad):
+            return finish(T_pred, f"rejected: correction of {np.hypot(dx, dy):.2f} m / {np.rad2deg(dyaw):.1f}° "
+                                  f"exceeds the plausible odometry error", False, cov_pred, res.delta)
+        T_map_base = T_pred @ correction
+        cov = np.zeros((6, 6))
+        cov[np.ix_([0, 1, 5], [0, 1, 5])] = res.covariance
+        return finish(T_map_base, "ok", True, cov, res.delta)
+
+    # ------------------------------------------------------------------------------- export
+    def map_points(self) -> np.ndarray:
+        """All keyframe points in the map frame (for visualisation)."""
+        if not self.keyframes:
+            return np.zeros((0, 3))
+        return np.concatenate([transform_points(kf.T_map_base, kf.points.astype(np.float64)) for kf in self.keyframes])

@@ -1,0 +1,117 @@
+"""`flyslam eval RECORDING --out DIR`: run evolver and localiser on a recording and score the trajectory.
+
+Runs the chain in lockstep (every frame, a fixed number of generations per frame, deterministic for a
+seed; see common.lockstep), then writes to DIR:
+- ``estimated.tum``, ``groundtruth.tum`` and, when the recording has odometry, ``odometry.tum``;
+- ``metrics.json``: ATE RMSE after SE(3) alignment, mean RPE (translation, rotation), drift in % of path
+  length, frames per second — for the estimate and for odometry alone;
+- ``trajectories.png``: the three trajectories seen from above.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from common.lockstep import run_lockstep
+from common.recording import RecordingError, RecordingReader
+from common.trajectory import write_tum
+from common.trajectory_metrics import TrajectoryMismatch, evaluate
+
+
+def plot(path: Path, result, odom_in_map) -> None:
+    import cv2
+    size, margin = 800, 40
+    tracks = {"ground truth": (np.array([T[:3, 3] for T in result.truth]), (60, 160, 60)),
+              "odometry": (np.array([T[:3, 3] for T in odom_in_map]) if odom_in_map else np.zeros((0, 3)), (40, 40, 220)),
+              "flyslam": (np.array([T[:3, 3] for T in result.estimated]), (200, 90, 20))}
+    pts = np.concatenate([t for t, _ in tracks.values() if len(t)])[:, :2]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    scale = (size - 2 * margin) / max(float(np.max(hi - lo)), 1e-3)
+    img = np.full((size, size, 3), 255, np.uint8)
+
+    def px(p):  # map x right, y up
+        return np.stack([margin + (p[:, 0] - lo[0]) * scale, size - margin - (p[:, 1] - lo[1]) * scale], 1).astype(np.int32)
+
+    for i, (name, (track, colour)) in enumerate(tracks.items()):
+        if len(track) > 1:
+            cv2.polylines(img, [px(track[:, :2])], False, colour, 2, cv2.LINE_AA)
+        cv2.putText(img, name, (margin, 25 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA)
+    cv2.putText(img, f"{1 / scale:.3f} m/px", (size - 180, size - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
+    cv2.imwrite(str(path), img)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="flyslam eval", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("recording", help="MCAP recording with stereo frames and calibration (and truth/pose)")
+    p.add_argument("--out", required=True, help="folder for trajectories, metrics.json and the plot")
+    p.add_argument("--generations", type=int, default=30, help="evolver generations per frame")
+    p.add_argument("--population", type=int, default=5000)
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    try:
+        reader = RecordingReader(args.recording)
+    except RecordingError as e:
+        print(f"flyslam eval: {e}", file=sys.stderr)
+        return 2
+    from common.fly import EvolverConfig
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def progress(n, status):
+        print(f"\r[eval] frame {n}: {status[:60]:<60}", end="", file=sys.stderr, flush=True)
+
+    result = run_lockstep(reader.messages(), generations_per_frame=args.generations, seed=args.seed,
+                          evolver_config=EvolverConfig(population=args.population, depth_max=30.0),
+                          max_frames=args.max_frames, progress=progress)
+    print(file=sys.stderr)
+    if reader.error:
+        print(f"flyslam eval: warning: {args.recording}: {reader.error}; evaluated the readable part", file=sys.stderr)
+    if result.frames == 0:
+        print(f"flyslam eval: {args.recording} has no stereo frames with a calibration", file=sys.stderr)
+        return 2
+    stamps = np.array(result.stamps, np.int64)
+    write_tum(out / "estimated.tum", stamps, np.array(result.estimated))
+    metrics = {"recording": str(args.recording), "frames": result.frames,
+               "frames_per_s": round(result.frames_per_s, 3), "registered_fraction": round(result.registered_fraction, 3),
+               "keyframes": result.keyframes}
+    odom_in_map = []
+    with_odom = [i for i, T in enumerate(result.odometry) if T is not None]
+    have_odom = len(with_odom) > 0.9 * result.frames
+    if have_odom:
+        # Odometry lives in its own odom frame: express it in the map frame where the estimate first had it.
+        i0 = with_odom[0]
+        T_map_odom0 = result.estimated[i0] @ np.linalg.inv(result.odometry[i0])
+        odom_stamps = stamps[with_odom]
+        odom_in_map = [T_map_odom0 @ result.odometry[i] for i in with_odom]
+        write_tum(out / "odometry.tum", odom_stamps, np.array(odom_in_map))
+    if result.truth:
+        write_tum(out / "groundtruth.tum", np.array(result.truth_stamps, np.int64), np.array(result.truth))
+        try:
+            metrics["flyslam"] = evaluate(stamps, result.estimated, result.truth_stamps, result.truth).as_dict()
+            if have_odom:
+                metrics["odometry_only"] = evaluate(odom_stamps, odom_in_map, result.truth_stamps, result.truth).as_dict()
+                metrics["ate_improvement_over_odometry"] = round(
+                    metrics["odometry_only"]["ate_rmse_m"] / max(metrics["flyslam"]["ate_rmse_m"], 1e-9), 2)
+        except TrajectoryMismatch as e:
+            metrics["error"] = str(e)
+        plot(out / "trajectories.png", result, odom_in_map)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    print(f"frames {result.frames} at {result.frames_per_s:.2f} frames/s, registered {100 * result.registered_fraction:.0f} %, "
+          f"{result.keyframes} keyframes")
+    for name in ("flyslam", "odometry_only"):
+        if name in metrics:
+            r = metrics[name]
+            print(f"{name:14s} ATE {r['ate_rmse_m']:.3f} m ({r['ate_pct_of_path']:.2f} % of {r['path_length_m']:.1f} m)  "
+                  f"RPE {r['rpe_trans_mean_m'] * 1000:.1f} mm / {r['rpe_rot_mean_deg']:.2f}°  drift {r['drift_pct']:.2f} %")
+    print(f"wrote {out}/metrics.json, estimated.tum" + (", trajectories.png" if result.truth else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
