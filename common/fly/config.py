@@ -29,6 +29,9 @@ class EvolverConfig:
     crossover2_rate: float = 0.1      # 2-parent barycentric crossover (children on the parents' line)
     crossover3_rate: float = 0.1      # 3-parent barycentric crossover (children in the parents' plane)
     immigration_rate: float = 0.02    # fresh flies drawn like the initialisation
+    exchange_rate: float = 0.6        # depth exchange: the child keeps its parent's pixel and takes the
+                                      # disparity of an image neighbour (uniform crossover of the (u, v | d)
+                                      # genes) — spreads a found surface along the image, PatchMatch-like
     # Gaussian mutation in (u_left, v, disparity) space, i.e. scaled to stereo depth uncertainty.
     mutation_sigma_px: float = 0.7    # image-plane step (pixels) of the left projection
     mutation_sigma_disparity: float = 4.0   # initial disparity step (pixels)
@@ -78,9 +81,9 @@ class EvolverConfig:
             bad(f"tournament_size must be ≥ 1, got {self.tournament_size}")
         if not 0 < self.elite_fraction < 1:
             bad(f"elite_fraction must be in (0, 1), got {self.elite_fraction}")
-        rates = (self.crossover2_rate, self.crossover3_rate, self.immigration_rate)
+        rates = (self.crossover2_rate, self.crossover3_rate, self.immigration_rate, self.exchange_rate)
         if min(rates) < 0 or sum(rates) > 1:
-            bad(f"crossover and immigration rates must be ≥ 0 and sum to ≤ 1, got {rates}")
+            bad(f"crossover, exchange and immigration rates must be ≥ 0 and sum to ≤ 1, got {rates}")
         for name in ("mutation_sigma_px", "mutation_sigma_disparity", "mutation_sigma_disparity_min",
                      "ssd_floor_scale", "gradient_saturation"):
             v = getattr(self, name)

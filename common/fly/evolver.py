@@ -31,13 +31,16 @@ import numpy as np
 from common.camera import StereoCalibration
 from common.fly.config import EvolverConfig
 from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
-from common.fly.operators import (SharingGrid, crossover2, crossover3, mutate, project_uvd)
+from common.fly.operators import (SharingGrid, backproject_uvd, crossover2, crossover3, mutate,
+                                  project_uvd)
 from common.fly.sampling import disparity_bounds, sample_flies
 
 FitnessTerm = Callable[[np.ndarray], np.ndarray]
 
-_MUTATION, _CROSS2, _CROSS3, _IMMIGRANT = 0, 1, 2, 3
-_MATE_REACH = 4  # crossover mates are within this many places in the cell-ordered population
+_MUTATION, _CROSS2, _CROSS3, _IMMIGRANT, _EXCHANGE = 0, 1, 2, 3, 4
+_MATE_REACH = 4
+_NOISE_REFRESH_FRAMES = 30
+_STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure  # crossover mates are within this many places in the cell-ordered population
 
 
 class FitnessTermError(ValueError):
@@ -66,6 +69,8 @@ class FlyEvolver:
         self.sharing = SharingGrid(calib.width, calib.height, cell, config.sharing_strength)
         self._terms: dict[str, tuple[FitnessTerm, float]] = {}
         self._frame: PreparedFrame | None = None
+        self._noise_sigma: float | None = None
+        self._frames_since_noise = 0
         self.generation = 0
         n = config.population
         self._pos = sample_flies(calib, n, config.depth_min, config.depth_max, self.rng, self._margin)
@@ -105,11 +110,22 @@ class FlyEvolver:
 
     # ------------------------------------------------------------------------------- inputs
     def set_images(self, left: np.ndarray, right: np.ndarray) -> None:
-        """Load a new rectified stereo frame (H×W×3 uint8 RGB or H×W mono) and re-score the population."""
+        """Load a new rectified stereo frame (H×W×3 uint8 RGB or H×W mono) and re-score the population.
+
+        With ``noise_sigma=None`` the image noise is estimated on the first frame and re-estimated every
+        ``_NOISE_REFRESH_FRAMES`` frames (a camera's noise changes slowly; the estimate costs a few ms).
+        """
         c = self.config
-        self._frame = prepare_frame(self.calib, left, right, c.neighbourhood, c.noise_sigma,
-                                    c.ssd_floor_scale, c.gradient_saturation, c.window_sigma,
-                                    c.mean_removal_px, c.gradient_window, c.gradient_min_half)
+        sigma = c.noise_sigma
+        if sigma is None and self._noise_sigma is not None and self._frames_since_noise < _NOISE_REFRESH_FRAMES:
+            sigma = self._noise_sigma
+            self._frames_since_noise += 1
+        frame = prepare_frame(self.calib, left, right, c.neighbourhood, sigma, c.ssd_floor_scale,
+                              c.gradient_saturation, c.window_sigma, c.mean_removal_px, c.gradient_window,
+                              c.gradient_min_half)
+        if c.noise_sigma is None and sigma is None:
+            self._noise_sigma, self._frames_since_noise = frame.noise_sigma, 1
+        self._frame = frame
         self._rescore()
 
     def move_flies(self, T_new_old: np.ndarray) -> None:
@@ -190,9 +206,10 @@ class FlyEvolver:
 
     def _operators(self, m: int) -> np.ndarray:
         c = self.config
-        p = np.array([1 - c.crossover2_rate - c.crossover3_rate - c.immigration_rate,
-                      c.crossover2_rate, c.crossover3_rate, c.immigration_rate])
-        return self.rng.choice(4, size=m, p=np.clip(p, 0, 1) / p.clip(0, 1).sum())
+        p = np.array([1 - c.crossover2_rate - c.crossover3_rate - c.immigration_rate - c.exchange_rate,
+                      c.crossover2_rate, c.crossover3_rate, c.immigration_rate, c.exchange_rate])
+        p = np.clip(p, 0, 1)
+        return self.rng.choice(5, size=m, p=p / p.sum())
 
     def _select_parents(self, shared: np.ndarray, m: int) -> np.ndarray:
         c, n = self.config, len(shared)
@@ -217,9 +234,9 @@ class FlyEvolver:
         child = np.empty((m, 3), np.float32)
         sigma = self._sigma_d[parents].copy()
         mut = ops == _MUTATION
-        if c.adaptive_mutation:
-            tau = np.float32(0.6)
-            sigma *= np.exp(tau * rng.standard_normal(m, dtype=np.float32))
+        if c.adaptive_mutation and c.mode == "generational":
+            # Log-normal self-adaptation: a mutated child carries its own step, selection keeps good ones.
+            sigma[mut] *= np.exp(np.float32(0.6) * rng.standard_normal(int(mut.sum()), dtype=np.float32))
             np.clip(sigma, c.mutation_sigma_disparity_min, self._sigma_max, out=sigma)
         if mut.any():
             child[mut] = mutate(self.calib, self._pos[parents[mut]], c.mutation_sigma_px, sigma[mut],
@@ -234,6 +251,13 @@ class FlyEvolver:
                 child[sel] = crossover2(self._pos[p1], self._pos[m1], rng)
             else:
                 child[sel] = crossover3(self._pos[p1], self._pos[m1], self._pos[self._mates(p1)], rng)
+        exc = ops == _EXCHANGE
+        if exc.any():
+            p1 = parents[exc]
+            u, v, _ = project_uvd(self.calib, self._pos[p1])
+            _, _, d = project_uvd(self.calib, self._pos[self._mates(p1)])
+            d = d + rng.standard_normal(len(d), dtype=np.float32) * np.float32(c.mutation_sigma_disparity_min)
+            child[exc] = backproject_uvd(self.calib, u, v, np.clip(d, *self._d_range))
         imm = ops == _IMMIGRANT
         if imm.any():
             child[imm] = sample_flies(self.calib, int(imm.sum()), c.depth_min, c.depth_max, rng,
@@ -258,13 +282,23 @@ class FlyEvolver:
             cand = rng.integers(0, n, (m, max(2, c.tournament_size)))
             victims = cand[np.arange(m), np.argmin(shared[cand], axis=1)]
             if c.crowding:
-                victims = np.where(ops == _MUTATION, parents, victims)
+                victims = np.where((ops == _MUTATION) | (ops == _EXCHANGE), parents, victims)
             u, v, _ = project_uvd(self.calib, child)
             cells = self.sharing.cells(u, v)
             child_shared = SharingGrid.apply(
                 fit, self.sharing.factor(cells, extra=(cells != self._cells[victims]).astype(np.int64)))
             accept = (child_shared >= shared[victims]) | (ops == _IMMIGRANT)
             accept &= np.isfinite(fit) | (ops == _IMMIGRANT)
+            if c.adaptive_mutation and c.crowding:
+                # Per-fly success rule: a mutation that beats its parent widens the step (×1.5), one that
+                # fails narrows the parent's (×0.85) — equilibrium near a 30 % success rate, so converged
+                # flies refine their depth finely while flies still searching keep large steps.
+                mut = ops == _MUTATION
+                sigma = np.where(mut & accept, sigma * np.float32(_STEP_UP), sigma)
+                failed = parents[mut & ~accept]
+                self._sigma_d[failed] *= np.float32(_STEP_DOWN)
+                np.clip(sigma, c.mutation_sigma_disparity_min, self._sigma_max, out=sigma)
+                np.clip(self._sigma_d, c.mutation_sigma_disparity_min, self._sigma_max, out=self._sigma_d)
             v_acc = victims[accept]
             self._pos[v_acc] = child[accept]
             self._fit[v_acc] = fit[accept]

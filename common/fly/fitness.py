@@ -69,8 +69,10 @@ def estimate_noise_sigma(grey: np.ndarray, flat_fraction: float = 0.3) -> float:
     m = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
     conv = np.abs(cv2.filter2D(g, cv2.CV_32F, m, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1])
     grad = (np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)))
-    grad = grad[1:-1, 1:-1]
-    flat = grad <= np.quantile(grad, flat_fraction)
+    # A 2×2-subsampled set of pixels is plenty for two statistics and four times cheaper.
+    grad, conv = grad[1:-1:2, 1:-1:2].ravel(), conv[::2, ::2].ravel()
+    k = max(int(flat_fraction * grad.size) - 1, 0)
+    flat = grad <= np.partition(grad, k)[k]
     return float(np.sqrt(np.pi / 2) * conv[flat].mean(dtype=np.float64) / 6.0)
 
 
@@ -101,7 +103,7 @@ def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.nd
               cv2.boxFilter(sq_grad, cv2.CV_32F, (h + 1, n), anchor=(0, h), borderType=b),  # right
               cv2.boxFilter(sq_grad, cv2.CV_32F, (n, h + 1), anchor=(h, h), borderType=b),  # top
               cv2.boxFilter(sq_grad, cv2.CV_32F, (n, h + 1), anchor=(h, 0), borderType=b)]  # bottom
-    return np.minimum(np.minimum(halves[0], halves[1]), np.minimum(halves[2], halves[3]))
+    return cv2.min(cv2.min(halves[0], halves[1]), cv2.min(halves[2], halves[3]))
 
 
 def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
@@ -113,29 +115,33 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     ``mean_removal_px`` (odd) subtracts each image's local mean over that box before matching, which makes
     the SSD insensitive to exposure/gain differences between the two cameras (a cheap zero-mean SSD).
     """
+    for img, which in ((left, "left"), (right, "right")):
+        try:
+            calib.check_image(np.asarray(img), which)
+        except CalibrationError as e:
+            raise ImageError(str(e)) from e
     L, R = _as_float_image(left, "left"), _as_float_image(right, "right")
-    try:
-        calib.check_image(L, "left")
-        calib.check_image(R, "right")
-    except CalibrationError as e:
-        raise ImageError(str(e)) from e
     if L.shape != R.shape:
         raise ImageError(f"left {L.shape} and right {R.shape} images differ")
-    grey = L.mean(axis=2)
+    C = L.shape[2]
+    grey = L[:, :, 0].copy() if C == 1 else cv2.transform(L, np.full((1, C), 1.0 / C, np.float32))
     if mean_removal_px:
         k = (int(mean_removal_px), int(mean_removal_px))
-        L = np.ascontiguousarray(L - cv2.blur(L, k, borderType=cv2.BORDER_REPLICATE).reshape(L.shape))
-        R = np.ascontiguousarray(R - cv2.blur(R, k, borderType=cv2.BORDER_REPLICATE).reshape(R.shape))
+        bl = cv2.blur(np.asarray(left), k, borderType=cv2.BORDER_REPLICATE)   # uint8 blur: 4× less data
+        br = cv2.blur(np.asarray(right), k, borderType=cv2.BORDER_REPLICATE)
+        L = cv2.subtract(L, bl.reshape(L.shape), dtype=cv2.CV_32F).reshape(L.shape)
+        R = cv2.subtract(R, br.reshape(R.shape), dtype=cv2.CV_32F).reshape(R.shape)
     sigma = float(noise_sigma) if noise_sigma is not None else estimate_noise_sigma(grey)
     sigma = max(sigma, 0.5)  # quantisation alone is ~0.3 grey levels; never trust a zero estimate
     floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
-    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    energy = gradient_energy(gx * gx + gy * gy, int(gradient_window or neighbourhood), min_half_window)
-    sat2 = (gradient_saturation * sigma) ** 2
-    G = (energy / (energy + sat2)).astype(np.float32) if sat2 > 0 else np.ones_like(energy)
-    return PreparedFrame(L, R, np.ascontiguousarray(G), sigma, 1.0 / floor,
-                         window_weights(neighbourhood, L.shape[2], window_sigma),
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+    energy = gradient_energy(cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy)),
+                             int(gradient_window or neighbourhood), min_half_window)
+    sat2 = np.float32((gradient_saturation * sigma) ** 2)
+    G = energy / (energy + sat2) if sat2 > 0 else np.ones_like(energy)
+    return PreparedFrame(np.ascontiguousarray(L), np.ascontiguousarray(R), np.ascontiguousarray(G), sigma,
+                         1.0 / floor, window_weights(neighbourhood, C, window_sigma),
                          np.ascontiguousarray(grey, dtype=np.float32))
 
 
