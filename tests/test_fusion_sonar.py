@@ -6,7 +6,7 @@ import pytest
 
 from common.camera import StereoCalibration
 from common.fusion.sonar import SonarScanError, echo_points, scan_in_base
-from common.fusion.sonar_term import SonarTerm, SonarTermConfig, sonar_fitness
+from common.fusion.sonar_term import SonarTerm, SonarTermConfig, in_echo_beams, sonar_fitness
 from common.geometry import R_BODY_OPTICAL, invert, make_transform, transform_points
 from common.messages import SonarScan, header
 
@@ -52,6 +52,8 @@ def test_sonar_term_on_a_synthetic_wall():
     assert np.all(f_before <= -0.99), "free space nearer than the echo is penalised"
     assert np.all(f_wall >= 0.95), "flies at the echo range are rewarded"
     assert np.all(f_above == 0.0) and np.all(f_aside == 0.0), "flies outside the beams are unaffected"
+    mask = in_echo_beams(in_camera(pts), T_BASE_CAMERA, ring_scan(), SonarTermConfig(height_m=HEIGHT))
+    assert mask[:2 * n].all() and not mask[2 * n:].any()
     # Behind the wall (possibly occluded) nothing is said either.
     behind = in_camera([[WALL_X + 0.5, 0.0, HEIGHT]])
     assert term(behind)[0] == 0.0

@@ -53,10 +53,8 @@ class SonarTermConfig:
             raise SonarScanError(f"vertical_half_angle_rad must be in (0, π/2), got {v}")
 
 
-def sonar_fitness(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarScan,
-                  config: SonarTermConfig | None = None) -> np.ndarray:
-    """(N,) float32 additive fitness of flies (N, 3) in the camera optical frame against a base_link scan."""
-    cfg = config or SonarTermConfig()
+def _beams(positions, T_base_camera, scan: SonarScan, cfg: "SonarTermConfig"):
+    """Per fly × usable beam: inside-the-cone mask, distance to the transducer, echo range, has-echo."""
     pos = np.asarray(positions, dtype=np.float32)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions must be (N, 3), got {pos.shape}")
@@ -70,8 +68,6 @@ def sonar_fitness(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarS
     poses = np.asarray(scan.transducer_poses, np.float64)
     ranges = np.asarray(scan.ranges, np.float64)
     use = np.isfinite(ranges) | cfg.no_echo_is_free
-    if len(pos) == 0 or not np.any(use):
-        return np.zeros(len(pos), np.float32)
     poses, ranges = poses[use], ranges[use]
     r = np.where(np.isfinite(ranges), ranges, scan.max_range_m).astype(np.float32)          # (K,)
     echo = np.isfinite(ranges)
@@ -84,20 +80,38 @@ def sonar_fitness(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarS
     dz = p[:, 2:3] - np.float32(cfg.height_m)
     ax = c * dx + s * dy
     lat = -s * dx + c * dy
-    d = np.sqrt(ax * ax + lat * lat + dz * dz)
-
+    horizontal = np.sqrt(ax * ax + lat * lat)
+    d = np.sqrt(horizontal * horizontal + dz * dz)
     half_h = 0.5 * scan.beam_width_rad
     half_v = cfg.vertical_half_angle_rad or half_h
     az = np.arctan2(lat, ax)
-    el = np.arctan2(dz, np.sqrt(ax * ax + lat * lat))
+    el = np.arctan2(dz, horizontal)
     inside = (ax > 0) & ((az / half_h) ** 2 + (el / half_v) ** 2 <= 1.0) & (d >= scan.min_range_m)
+    return inside, d, r, echo
 
+
+def sonar_fitness(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarScan,
+                  config: SonarTermConfig | None = None) -> np.ndarray:
+    """(N,) float32 additive fitness of flies (N, 3) in the camera optical frame against a base_link scan."""
+    cfg = config or SonarTermConfig()
+    inside, d, r, echo = _beams(positions, T_base_camera, scan, cfg)
+    if inside.shape[1] == 0:
+        return np.zeros(len(inside), np.float32)
     sigma = np.float32(cfg.echo_sigma_m) + np.float32(cfg.echo_sigma_rel) * r                # (K,)
     u = (d - r) / sigma
     reward = np.where(echo & (u <= 3.0), np.exp(-0.5 * u * u), 0.0)
     penalty = -np.clip((-u - 1.0), 0.0, 1.0)
     score = np.where(inside, reward + penalty, 0.0).sum(axis=1)
     return np.clip(score, -1.0, 1.0).astype(np.float32)
+
+
+def in_echo_beams(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarScan,
+                  config: SonarTermConfig | None = None) -> np.ndarray:
+    """(N,) bool: the fly lies inside the cone of at least one beam that returned an echo (where the term
+    can act at all; used by the benchmark to report figures where sonar has something to say)."""
+    cfg = config or SonarTermConfig()
+    inside, _, _, echo = _beams(positions, T_base_camera, scan, cfg)
+    return np.any(inside & echo, axis=1)
 
 
 class SonarTerm:
