@@ -112,3 +112,22 @@ def messages(frames: int = 30, flies: int = 2000, seed: int = 0, calib: StereoCa
                                                    header=m.header(i + 1, 5 + i, ""))
         if i == 20:
             yield "slam/map", fly_map(calib, 500, rng)
+
+
+def rrd_rows(path) -> dict[str, dict[str, list]]:
+    """{entity path: {column: [row values...]}} of a .rrd file, read back with the Rerun SDK; static rows
+    are listed under the column name prefixed with 'static:'; timestamp timelines come as int64 ns."""
+    import pyarrow as pa
+    import rerun as rr
+
+    out: dict[str, dict[str, list]] = {}
+    for chunk in rr.chunk.RrdReader(str(path)).store().stream():
+        cols = out.setdefault(chunk.entity_path, {})
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            key = f"static:{name}" if chunk.is_static else name
+            col = batch.column(name)
+            if pa.types.is_timestamp(col.type):  # timestamp timelines as int64 ns
+                col = col.cast(pa.int64())
+            cols.setdefault(key, []).extend(col.to_pylist())
+    return out

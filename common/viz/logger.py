@@ -139,6 +139,10 @@ class RerunLogger:
     # ----------------------------------------------------------------------------- calibration
     def calibration(self, msg: m.StereoCalibrationMsg) -> None:
         """Static: the left optical frame in base_link and a Pinhole per image (camera convention RDF)."""
+        old = self.calibration_msg
+        if old is not None and (old.width, old.height) == (msg.width, msg.height) and np.array_equal(
+                old.left.P, msg.left.P) and np.array_equal(old.T_base_camera, msg.T_base_camera):
+            return  # the same latched calibration again (subscription and query both deliver it)
         self._calib = m.calibration_from_msg(msg)  # raises CalibrationError when inconsistent
         self.calibration_msg = msg
         T = np.asarray(msg.T_base_camera, float)

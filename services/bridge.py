@@ -1,0 +1,248 @@
+"""Rerun bridge: logs the bus (images, flies, map, trajectories, field, commands, health) to Rerun, live and/or .rrd.
+
+Thin on purpose: subscriptions here, the message → Rerun mapping in :mod:`common.viz`.
+
+- Sensor-rate streams (stereo frames, fly populations, the harmonic field) are latest-value
+  subscriptions polled at ``--image-hz``: the bridge never queues images it cannot afford to log.
+- Poses, commands, heartbeats, calibration and targets arrive by callback into a bounded inbox that the
+  main loop drains (Rerun's timelines are per thread, so all logging happens on the main thread).
+- The localiser's map is a queryable: it is queried every ``--map-period-s`` seconds by a helper
+  thread, as is the latched calibration until it has arrived.
+- Liveliness tokens (``health/*``) are watched so that a vanished service shows as 0 in "Alive".
+
+Sinks: ``--rrd PATH`` (closed cleanly on SIGTERM/SIGINT so that ``rerun rrd verify`` passes) and a live
+gRPC server (``--grpc-port``) with a web viewer (``--web-port``), both bound to ``--bind`` (loopback by
+default). The in-process web viewer of rerun-sdk 0.41 always listens on all interfaces, so the web
+viewer runs as a ``rerun --serve-web --bind ...`` child process, which honours the address.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import rerun as rr
+import zenoh
+
+from common import messages as m
+from common.viz import RerunLogger, blueprint
+from services.base import run_service, service_parser
+
+log = logging.getLogger("flyslam.bridge")
+
+# Streams delivered by callback: every message matters (trajectories, commands, health).
+CALLBACK_STREAMS = {
+    "stereo/calibration": m.StereoCalibrationMsg,
+    "slam/pose": m.PoseEstimate,
+    "fusion/pose": m.PoseEstimate,
+    "fusion/odom": m.PoseEstimate,
+    "truth/pose": m.PoseEstimate,
+    "planner/cmd_vel": m.VelocityCommand,
+    "planner/target": m.Target,
+    "status/*": m.Heartbeat,
+}
+# Streams where only the newest message is worth logging.
+LATEST_STREAMS = {
+    "stereo/frame": m.StereoFrame,
+    "flies/population": m.FlyPopulation,
+    "planner/field": m.HarmonicField,
+}
+INBOX_SIZE = 20_000
+
+
+def build_parser():
+    p = service_parser("bridge", __doc__.splitlines()[0])
+    p.add_argument("--rrd", help="write the recording to this .rrd file (flushed and closed on stop)")
+    p.add_argument("--grpc-port", type=int, default=9876, help="live gRPC server for viewers (0: none)")
+    p.add_argument("--web-port", type=int, default=9090, help="web viewer over HTTP (0: none; needs --grpc-port)")
+    p.add_argument("--bind", default="127.0.0.1",
+                   help="address the live servers listen on; 0.0.0.0 exposes them to the network")
+    p.add_argument("--server-memory-limit", default="512MiB",
+                   help="how much the live server buffers for viewers that connect late")
+    p.add_argument("--image-hz", type=float, default=10.0, help="log images, flies and the field at most this often")
+    p.add_argument("--max-flies", type=int, default=20_000, help="subsample larger populations to this many")
+    p.add_argument("--max-map-points", type=int, default=100_000, help="subsample the map to this many points")
+    p.add_argument("--jpeg-quality", type=int, default=80, help="quality when raw images must be compressed")
+    p.add_argument("--map-period-s", type=float, default=3.0, help="query the localiser's map this often")
+    p.add_argument("--application-id", default="flyslam", help="Rerun application id")
+    return p
+
+
+def _port_free(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def open_sinks(args) -> tuple[list, str | None]:
+    """(sinks, live gRPC URI or None). A busy live port is reported and skipped, never fatal: the file
+    matters more than the live view (rerun would otherwise fail every flush)."""
+    sinks, uri = [], None
+    if args.rrd:
+        path = Path(args.rrd)
+        if not path.parent.is_dir():
+            raise SystemExit(f"bridge: directory of --rrd {path} does not exist")
+        sinks.append(rr.FileSink(str(path)))
+    if args.grpc_port:
+        if _port_free(args.bind, args.grpc_port):
+            server = rr.GrpcServerSink(bind_ip=args.bind, port=args.grpc_port,
+                                       server_memory_limit=args.server_memory_limit)
+            sinks.append(server)
+            uri = server.uri
+        else:
+            log.warning("port %s:%d is busy: no live gRPC server (the .rrd is still written)", args.bind,
+                        args.grpc_port)
+    if not sinks:
+        raise SystemExit("bridge: nothing to do: give --rrd and/or a free --grpc-port")
+    return sinks, uri
+
+
+def rerun_binary() -> str:
+    """The rerun executable itself (``.venv/bin/rerun`` is a Python wrapper whose child would outlive a
+    terminate())."""
+    import rerun_cli
+
+    exe = Path(rerun_cli.__file__).parent / "rerun"
+    if not exe.is_file():
+        raise SystemExit(f"bridge: rerun executable not found at {exe}")
+    return str(exe)
+
+
+def start_web_viewer(args, grpc_uri: str) -> subprocess.Popen | None:
+    if not args.web_port:
+        return None
+    if not _port_free(args.bind, args.web_port):
+        log.warning("port %s:%d is busy: no web viewer", args.bind, args.web_port)
+        return None
+    cmd = [rerun_binary(), "--serve-web", "--bind", args.bind,
+           "--web-viewer-port", str(args.web_port), grpc_uri]
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log.info("web viewer: http://%s:%d/?url=%s", args.bind, args.web_port, grpc_uri)
+    return proc
+
+
+class Inbox:
+    """Bounded queue of (stream, message) filled by Zenoh callbacks; overflow is counted, not blocking."""
+
+    def __init__(self, node, size: int = INBOX_SIZE):
+        self._q: queue.Queue = queue.Queue(maxsize=size)
+        self._node = node
+
+    def put(self, stream: str, msg) -> None:
+        try:
+            self._q.put_nowait((stream, msg))
+        except queue.Full:
+            self._node.counters.add("inbox_dropped")
+
+    def drain(self):
+        while True:
+            try:
+                yield self._q.get_nowait()
+            except queue.Empty:
+                return
+
+
+def _poll_latched(node, inbox: Inbox, period: float, have_calibration: threading.Event) -> None:
+    """Helper thread: query the map (and the calibration until it came) every ``period`` seconds."""
+    while not node.stopping:
+        if not have_calibration.is_set():
+            cal = node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0)
+            if cal is not None:
+                inbox.put("stereo/calibration", cal)
+        fmap = node.query_latest("slam/map", m.FlyMap, timeout=1.0)
+        if fmap is not None:
+            inbox.put("slam/map", fmap)
+        if not node.sleep(period):
+            return
+
+
+def body(node, args) -> int:
+    if args.image_hz <= 0 or args.map_period_s <= 0:
+        raise SystemExit("bridge: --image-hz and --map-period-s must be positive")
+    sinks, grpc_uri = open_sinks(args)
+    rec = rr.RecordingStream(args.application_id, send_properties=True)
+    rec.set_sinks(*sinks, default_blueprint=blueprint())
+    viz = RerunLogger(rec, max_flies=args.max_flies, max_map_points=args.max_map_points,
+                      jpeg_quality=args.jpeg_quality)
+    web = start_web_viewer(args, grpc_uri) if grpc_uri else None
+    if grpc_uri:
+        log.info("live: rerun %s", grpc_uri)
+    if args.rrd:
+        log.info("recording to %s", args.rrd)
+
+    inbox = Inbox(node)
+    have_calibration = threading.Event()
+    for stream, schema in CALLBACK_STREAMS.items():
+        name = "status" if stream == "status/*" else stream
+        node.subscribe(stream, schema, lambda msg, name=name: inbox.put(name, msg))
+    latest = {stream: node.subscribe_latest(stream, schema) for stream, schema in LATEST_STREAMS.items()}
+
+    health_prefix = node.key("health/")
+
+    def on_liveliness(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key.startswith(health_prefix):
+            inbox.put("health", (key[len(health_prefix):], sample.kind == zenoh.SampleKind.PUT))
+
+    alive_sub = node.session.liveliness().declare_subscriber(node.key("health/*"), on_liveliness, history=True)
+    poller = threading.Thread(target=_poll_latched, args=(node, inbox, args.map_period_s, have_calibration),
+                              name="bridge-latched", daemon=True)
+    poller.start()
+
+    period = 1.0 / args.image_hz
+    errors = 0
+    try:
+        while not node.stopping:
+            t0 = time.monotonic()
+            batch = list(inbox.drain())
+            batch += [(stream, msg) for stream, sub in latest.items() if (msg := sub.take()) is not None]
+            for stream, msg in batch:
+                try:
+                    if stream == "health":
+                        viz.liveliness(*msg)
+                    else:
+                        viz.handle(stream, msg)
+                        if stream == "stereo/calibration":
+                            have_calibration.set()
+                    node.progress += 1
+                except ValueError as e:  # a message that cannot be viewed: count it, keep going
+                    errors += 1
+                    node.counters.add("view_errors")
+                    if errors <= 5 or errors % 100 == 0:
+                        log.warning("cannot view a message on %s: %s (%d so far)", stream, e, errors)
+            node.sleep(max(0.0, period - (time.monotonic() - t0)))
+    finally:
+        try:
+            viz.finish()
+        finally:
+            alive_sub.undeclare()
+            try:
+                rec.flush(timeout_sec=10.0)
+            except RuntimeError as e:  # a live sink that died must not keep the file from closing
+                log.warning("flushing: %s", e)
+            rec.disconnect()
+            if web is not None:
+                web.terminate()
+                try:
+                    web.wait(5)
+                except subprocess.TimeoutExpired:
+                    web.kill()
+            log.info("bridge stopped after logging %d messages", node.progress)
+    return 0
+
+
+def main(argv=None) -> int:
+    return run_service("bridge", build_parser(), body, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
