@@ -216,6 +216,51 @@ def _interp(grid, lo, h, qx, qy, qz, want_grad):
 
 
 @njit(cache=True)
+def _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
+    """Σ_j w_j (K − K_far)(|q − b_j|) over B's flies within r_c of q, and its gradient.
+
+    K − K_far is a compact bump (1/ε − K_far(0) at 0, zero with zero slope at r_c): the near-field
+    correction of the fast δ, and on its own the kernel of the local correlation objective.
+    """
+    s = 0.0
+    dx = 0.0
+    dy = 0.0
+    dz = 0.0
+    # Cell list with cell size `cell` (r_c / 2): visit only the x-y columns within r_c of q and,
+    # in each, the contiguous run of z cells spanning [qz - r_c, qz + r_c].
+    rc2 = rc * rc
+    x0 = max(int(np.floor((qx - rc - clo[0]) / cell)), 0)
+    x1 = min(int(np.floor((qx + rc - clo[0]) / cell)), dims[0] - 1)
+    y0 = max(int(np.floor((qy - rc - clo[1]) / cell)), 0)
+    y1 = min(int(np.floor((qy + rc - clo[1]) / cell)), dims[1] - 1)
+    z0 = max(int(np.floor((qz - rc - clo[2]) / cell)), 0)
+    z1 = min(int(np.floor((qz + rc - clo[2]) / cell)), dims[2] - 1)
+    if z0 <= z1:
+        for ax in range(x0, x1 + 1):
+            ddx = max(clo[0] + ax * cell - qx, qx - (clo[0] + (ax + 1) * cell), 0.0)
+            for ay in range(y0, y1 + 1):
+                ddy = max(clo[1] + ay * cell - qy, qy - (clo[1] + (ay + 1) * cell), 0.0)
+                if ddx * ddx + ddy * ddy >= rc2:
+                    continue
+                base = (ax * dims[1] + ay) * dims[2]
+                for j in range(start[base + z0], start[base + z1 + 1]):
+                    ex = qx - Bs[j, 0]
+                    ey = qy - Bs[j, 1]
+                    ez = qz - Bs[j, 2]
+                    r2 = ex * ex + ey * ey + ez * ez
+                    if r2 >= rc2:
+                        continue
+                    r = np.sqrt(r2)
+                    s += wbs[j] * (k_exact(r, eps) - k_far(r, eps, rc))
+                    if want_grad and r > 1e-300:
+                        f = wbs[j] * (dk_exact(r, eps) - dk_far(r, eps, rc)) / r
+                        dx += f * ex
+                        dy += f * ey
+                        dz += f * ez
+    return s, dx, dy, dz
+
+
+@njit(cache=True)
 def _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell,
               dims, near, want_grad):
     """Fast S_B(q) and ∇S_B(q): far field from the grid + exact near correction.
@@ -242,37 +287,11 @@ def _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell
                 dz += f * ez
         return s, dx, dy, dz, True
     if near:
-        # Cell list with cell size `cell` (r_c / 2): visit only the x-y columns within r_c of q and,
-        # in each, the contiguous run of z cells spanning [qz - r_c, qz + r_c].
-        rc2 = rc * rc
-        x0 = max(int(np.floor((qx - rc - clo[0]) / cell)), 0)
-        x1 = min(int(np.floor((qx + rc - clo[0]) / cell)), dims[0] - 1)
-        y0 = max(int(np.floor((qy - rc - clo[1]) / cell)), 0)
-        y1 = min(int(np.floor((qy + rc - clo[1]) / cell)), dims[1] - 1)
-        z0 = max(int(np.floor((qz - rc - clo[2]) / cell)), 0)
-        z1 = min(int(np.floor((qz + rc - clo[2]) / cell)), dims[2] - 1)
-        if z0 <= z1:
-            for ax in range(x0, x1 + 1):
-                ddx = max(clo[0] + ax * cell - qx, qx - (clo[0] + (ax + 1) * cell), 0.0)
-                for ay in range(y0, y1 + 1):
-                    ddy = max(clo[1] + ay * cell - qy, qy - (clo[1] + (ay + 1) * cell), 0.0)
-                    if ddx * ddx + ddy * ddy >= rc2:
-                        continue
-                    base = (ax * dims[1] + ay) * dims[2]
-                    for j in range(start[base + z0], start[base + z1 + 1]):
-                        ex = qx - Bs[j, 0]
-                        ey = qy - Bs[j, 1]
-                        ez = qz - Bs[j, 2]
-                        r2 = ex * ex + ey * ey + ez * ez
-                        if r2 >= rc2:
-                            continue
-                        r = np.sqrt(r2)
-                        s += wbs[j] * (k_exact(r, eps) - k_far(r, eps, rc))
-                        if want_grad and r > 1e-300:
-                            f = wbs[j] * (dk_exact(r, eps) - dk_far(r, eps, rc)) / r
-                            dx += f * ex
-                            dy += f * ey
-                            dz += f * ez
+        ns, nx, ny, nz = _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad)
+        s += ns
+        dx += nx
+        dy += ny
+        dz += nz
     return s, dx, dy, dz, False
 
 
@@ -335,5 +354,43 @@ def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo,
             s, dx, dy, dz, o = _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc,
                                          Bs, wbs, start, clo, cell, dims, near, False)
             acc += wa[i] / s
+        out[k] = acc
+    return out
+
+
+@njit(cache=True)
+def near_field(Q, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
+    """The near sum of `_near_at` at every row of Q (serial), with gradients (n, 3)."""
+    n = Q.shape[0]
+    S = np.empty(n)
+    G = np.zeros((n, 3))
+    for i in range(n):
+        s, dx, dy, dz = _near_at(Q[i, 0], Q[i, 1], Q[i, 2], Bs, wbs, start, clo, cell, dims, eps, rc,
+                                 want_grad)
+        S[i] = s
+        G[i, 0] = dx
+        G[i, 1] = dy
+        G[i, 2] = dz
+    return S, G
+
+
+@njit(cache=True, parallel=True)
+def batch_near(A, wa, Rs, ts, Bs, wbs, start, clo, cell, dims, eps, rc):
+    """Σᵢ wa_i · near-sum(Rᵀ(a_i − t)) for every candidate (R, t), parallel over candidates."""
+    m = Rs.shape[0]
+    out = np.empty(m)
+    for k in prange(m):
+        R = Rs[k]
+        t = ts[k]
+        acc = 0.0
+        for i in range(A.shape[0]):
+            ex = A[i, 0] - t[0]
+            ey = A[i, 1] - t[1]
+            ez = A[i, 2] - t[2]
+            qx = R[0, 0] * ex + R[1, 0] * ey + R[2, 0] * ez
+            qy = R[0, 1] * ex + R[1, 1] * ey + R[2, 1] * ez
+            qz = R[0, 2] * ex + R[1, 2] * ey + R[2, 2] * ez
+            s, dx, dy, dz = _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, False)
+            acc += wa[i] * s
         out[k] = acc
     return out

@@ -46,11 +46,15 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 import scipy.ndimage
 
+from ..camera import StereoCalibration
 from ..geometry import make_transform, rot_y, rot_z, so3_exp, so3_log
 from .field import PseudoDistanceField
+from .local import LocalCorrelationField
 from .pseudo_distance import PopulationError, as_population, as_weights, check_eps
+from .weights import covisible_masks, depth_weights, footprint_weights
 
 PLANES = ("optical", "body")
+OBJECTIVES = ("delta", "local")
 
 
 @dataclass
@@ -116,12 +120,24 @@ def _pose_jacobians(pose, p, step=1e-6):
 
 
 class _Objective:
-    """J(p) = δ(A, f_p(B)) on a fixed subset of A, with its gradient and per-fly gradients."""
+    """J(p) on a fixed subset of A, with its gradient and per-fly gradients.
 
-    def __init__(self, field: PseudoDistanceField, A, wa, pose, near: bool):
-        self.field, self.A, self.wa, self.pose, self.near = field, A, wa, pose, near
-        self.scale = field.weight_sum / wa.sum()
+    kind "delta": J = δ(A, f_p(B)) = scale Σ wᵃᵢ / S_B(qᵢ), qᵢ = f_p⁻¹(aᵢ) (PseudoDistanceField).
+    kind "local": J = −C(A, f_p(B)) = −Σ wᵃᵢ S_B(qᵢ) / Σ wᵃ  (LocalCorrelationField).
+    """
+
+    def __init__(self, field, A, wa, pose, near: bool, kind: str = "delta"):
+        self.field, self.A, self.wa, self.pose, self.near, self.kind = field, A, wa, pose, near, kind
+        self.scale = field.weight_sum / wa.sum() if kind == "delta" else 1.0 / wa.sum()
         self.count = 0
+
+    def _terms(self, S, G=None):
+        """Per-fly costs cᵢ and, with G = ∇S, their gradients ∂cᵢ/∂qᵢ."""
+        if self.kind == "delta":
+            c = self.scale * self.wa / S
+            return c, None if G is None else (-c / S)[:, None] * G
+        c = -self.scale * self.wa * S
+        return c, None if G is None else (-self.scale * self.wa)[:, None] * G
 
     def _points(self, p):
         R, t = self.pose(p)
@@ -131,16 +147,14 @@ class _Objective:
     def value(self, p) -> float:
         self.count += 1
         _, _, _, Q = self._points(p)
-        S = self.field.field(Q, near=self.near)
-        return self.scale * float((self.wa / S).sum())
+        return float(self._terms(self.field.field(Q, near=self.near))[0].sum())
 
     def per_fly(self, p):
         """(J, per-fly gradients (n, k)) at p."""
         self.count += 1
         R, t, D, Q = self._points(p)
         S, G = self.field.field(Q, with_grad=True, near=self.near)
-        c = self.scale * self.wa / S
-        Gq = (-c / S)[:, None] * G                      # ∂cᵢ/∂qᵢ
+        c, Gq = self._terms(S, G)                       # cᵢ and ∂cᵢ/∂qᵢ
         dR, dt = _pose_jacobians(self.pose, p)
         # ∂qᵢ/∂p_k = dR_kᵀ(aᵢ − t) − Rᵀ dt_k ; as rows: dᵢ @ dR_k − dt_k @ R
         J = np.stack([np.einsum("ij,ij->i", Gq, D @ dR[k] - dt[k] @ R) for k in range(len(p))], 1)
@@ -156,7 +170,7 @@ class _Objective:
             g = []
             for sgn in (1, -1):
                 S, G = self.field.field(Q + sgn * e, with_grad=True, near=self.near)
-                g.append(((-self.scale * self.wa / (S * S))[:, None] * G).sum(0))
+                g.append(self._terms(S, G)[1].sum(0))
             H[i] = (g[0] - g[1]) / (2 * step)
         return 0.5 * (H + H.T)
 
@@ -234,7 +248,8 @@ def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
 
 
 def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_counts, max_points,
-              coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed):
+              coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
+              objective="delta", local_radius=0.5):
     import time
     t0 = time.perf_counter()
     pose = _POSES[mode]
@@ -264,6 +279,8 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         return _fail(mode, k, f"degenerate populations: spread {min(spread_b, radius):.3g} m is "
                               f"not larger than eps={eps} m")
 
+    if np.any(wb == 0):
+        B, wb = B[wb > 0], wb[wb > 0]
     rng = np.random.default_rng(seed)
     live = np.flatnonzero(wa > 0)
     fine_idx = live if len(live) <= max_points else np.sort(rng.choice(live, max_points, replace=False))
@@ -275,15 +292,22 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     poses = [pose(p) for p in cand]
     lo, hi = _reach_bounds(A[fine_idx], poses)
     pad = 0.02 * float(np.max(hi - lo))
-    opts = dict(field_options or {})
-    fld = PseudoDistanceField(B, eps, weights_b=wb, bounds=(lo - pad, hi + pad), **opts)
-    t_field = time.perf_counter() - t0
-
-    # --- 1. coarse lattice on the far (smoothed) field
     Ac, wac = A[coarse_idx], wa[coarse_idx]
     Rs = np.stack([P[0] for P in poses])
     ts = np.stack([P[1] for P in poses])
-    coarse = fld.batch_sums(Ac, wac, Rs, ts, near=False) * (fld.weight_sum / wac.sum())
+    if objective == "delta":
+        opts = dict(field_options or {})
+        fld = PseudoDistanceField(B, eps, weights_b=wb, bounds=(lo - pad, hi + pad), **opts)
+        fld_coarse, coarse_near = fld, False
+    else:
+        # local correlation: the coarse level is the same kernel with a 3× wider cut-off
+        fld = LocalCorrelationField(B, eps, local_radius, weights_b=wb)
+        fld_coarse, coarse_near = LocalCorrelationField(B, eps, 3 * local_radius, weights_b=wb), True
+    t_field = time.perf_counter() - t0
+
+    # --- 1. coarse lattice on the smoothed objective (far field only / wide local kernel)
+    sums = fld_coarse.batch_sums(Ac, wac, Rs, ts, near=coarse_near)
+    coarse = sums * (fld.weight_sum / wac.sum()) if objective == "delta" else -sums / wac.sum()
     evals = len(cand)
     grid_vals = coarse.reshape(lat_shape)
     is_min = grid_vals == scipy.ndimage.minimum_filter(grid_vals, size=3, mode="nearest")
@@ -306,7 +330,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         return center + x * scale, v
 
     # --- 2. polish the lattice minima on the smoothed δ
-    smooth = _Objective(fld, Ac, wac, pose, near=False)
+    smooth = _Objective(fld_coarse, Ac, wac, pose, near=coarse_near, kind=objective)
     polished = [polish(smooth, cand[s], 30) for s in seeds]
     polished.sort(key=lambda pv: pv[1])
     # distinct minima only (closer than one lattice step in every scaled coordinate = same basin)
@@ -317,7 +341,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
             distinct.append((p, v))
 
     # --- 3. refine the best two on the full δ
-    full = _Objective(fld, A[fine_idx], wa[fine_idx], pose, near=True)
+    full = _Objective(fld, A[fine_idx], wa[fine_idx], pose, near=True, kind=objective)
     # the runner-up is worth refining only if, smoothed, it is already nearly as deep as the best
     rivals = [pv for pv in distinct[1:2] if pv[1] - distinct[0][1] < 3 * (1 - ambiguity_ratio) * contrast]
     refined = [polish(full, p, 60) for p, _ in distinct[:1] + rivals]
@@ -379,33 +403,99 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     return RegistrationResult(covariance=cov, ok=True, reason="", **common)
 
 
+@dataclass
+class StereoModel:
+    """How the flies were measured, for registration on deep scenes (see weights.py).
+
+    calib: the rig (both populations were seen through it).  depth_range: the depths flies can have
+    (metres), for co-visibility.  frame: the populations' frame for 6-DoF ("optical" or "body"; the
+    planar modes use their plane's frame).  depth_weighting: weight flies by 1/(1 + (σ_z/sigma_ref)²).
+    covisibility: keep only flies the other camera could see under the current estimate.  passes:
+    registrations run, each re-deriving the co-visible sets from the previous estimate.
+    """
+    calib: StereoCalibration
+    depth_range: tuple = (0.0, np.inf)
+    disparity_sigma: float = 0.4
+    sigma_ref: float = 0.25
+    depth_weighting: bool = True
+    footprint_weighting: bool = True
+    covisibility: bool = True
+    margin: float = 0.03
+    passes: int = 2
+    frame: str = "optical"
+
+
+def _register_stereo(mode, A, B, stereo: StereoModel, prior, window, weights_a, weights_b, args):
+    """Registration with depth-uncertainty weights and co-visibility masks, iterated `passes` times."""
+    frame = {"optical": "optical", "body": "body"}.get(mode, stereo.frame)
+    A = as_population(A, "A", allow_empty=True)
+    B = as_population(B, "B", allow_empty=True)
+    wa = as_weights(weights_a, len(A), "weights_a").copy()
+    wb = as_weights(weights_b, len(B), "weights_b").copy()
+    if stereo.depth_weighting:
+        wa *= depth_weights(A, stereo.calib, stereo.disparity_sigma, stereo.sigma_ref, frame)
+        wb *= depth_weights(B, stereo.calib, stereo.disparity_sigma, stereo.sigma_ref, frame)
+    if stereo.footprint_weighting:
+        wa *= footprint_weights(A, stereo.calib, frame)
+        wb *= footprint_weights(B, stereo.calib, frame)
+    T = np.eye(4) if prior is None else np.asarray(prior, dtype=float)
+    res = None
+    for _ in range(max(1, int(stereo.passes))):
+        wa_p, wb_p = wa, wb
+        if stereo.covisibility:
+            ma, mb = covisible_masks(A, B, T, stereo.calib, stereo.depth_range, stereo.margin, frame)
+            wa_p, wb_p = wa * ma, wb * mb
+        res = _register(mode, A, B, args["eps"], T, window, wa_p, wb_p, *args["rest"])
+        if not res.ok:
+            return res
+        T = res.T
+    return res
+
+
 def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, np.deg2rad(10.0)),
                     weights_a=None, weights_b=None, eps: float = 0.1, lattice=(7, 7, 7),
                     max_points: int = 1000, coarse_points: int = 192, min_flies: int = 20,
                     flat_ratio: float = 0.02, ambiguity_ratio: float = 0.9, field_options=None,
-                    seed: int = 0) -> RegistrationResult:
+                    seed: int = 0, stereo: StereoModel | None = None, objective: str = "delta",
+                    local_radius: float = 0.5) -> RegistrationResult:
     """Planar f minimising δ(A, f(B)): params (x, z, θ) for ``plane="optical"``, (x, y, θ) for "body".
 
     prior: 4×4 initial guess of f (e.g. from odometry; identity when None), projected onto the plane.
     window: half-widths of the search box around the prior's params (metres, metres, radians); a zero
-    half-width pins that parameter.  weights_a / weights_b: per-fly weights (δ_w), e.g. from
-    `depth_weights`.  max_points: flies of A used for the fine stages (random subset, fixed seed);
-    coarse_points: flies used on the lattice.  field_options: passed to PseudoDistanceField.
+    half-width pins that parameter.  weights_a / weights_b: per-fly weights (δ_w).  max_points: flies
+    of A used for the fine stages (random subset, fixed seed); coarse_points: flies used on the
+    lattice.  field_options: passed to PseudoDistanceField.  stereo: a StereoModel to weight flies by
+    depth uncertainty and restrict them to the co-visible part of the scene (what the SLAM service
+    should use on real, deep scenes; without it this is the paper's δ).
     Returns a RegistrationResult; see the module docstring for the covariance and the failure rules.
     """
     if plane not in PLANES:
         raise PopulationError(f"plane must be one of {PLANES}, got {plane!r}")
-    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, lattice, max_points,
-                     coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed)
+    if objective not in OBJECTIVES:
+        raise PopulationError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    rest = (lattice, max_points, coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
+            objective, local_radius)
+    if stereo is not None:
+        return _register_stereo(plane, A, B, stereo, prior, window, weights_a, weights_b,
+                                dict(eps=eps, rest=rest))
+    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, *rest)
 
 
 def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weights_a=None,
                   weights_b=None, eps: float = 0.1, lattice=(5, 5, 5, 3, 3, 3), max_points: int = 1000,
                   coarse_points: int = 128, min_flies: int = 20, flat_ratio: float = 0.02,
-                  ambiguity_ratio: float = 0.9, field_options=None, seed: int = 0) -> RegistrationResult:
+                  ambiguity_ratio: float = 0.9, field_options=None, seed: int = 0,
+                  stereo: StereoModel | None = None, objective: str = "delta",
+                  local_radius: float = 0.5) -> RegistrationResult:
     """Full rigid f minimising δ(A, f(B)): params (tx, ty, tz, ωx, ωy, ωz), ω a rotation vector.
 
     The window is around the prior's params (ω of the prior's rotation); otherwise as register_planar.
     """
-    return _register("6dof", A, B, eps, prior, window, weights_a, weights_b, lattice, max_points,
-                     coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed)
+    if objective not in OBJECTIVES:
+        raise PopulationError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    rest = (lattice, max_points, coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
+            objective, local_radius)
+    if stereo is not None:
+        return _register_stereo("6dof", A, B, stereo, prior, window, weights_a, weights_b,
+                                dict(eps=eps, rest=rest))
+    return _register("6dof", A, B, eps, prior, window, weights_a, weights_b, *rest)
