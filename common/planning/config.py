@@ -1,0 +1,106 @@
+"""Configuration, command and report types of the harmonic planner."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+class PlannerInputError(ValueError):
+    """Bad input to the planner (wrong shape, non-finite value, impossible configuration)."""
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Everything the harmonic planner needs to know, in SI units and the map frame (x, y; z up).
+
+    The grid is a *fixed map-frame extent* (``origin`` = map coordinates of its lower-left corner,
+    ``size_m`` = (width along x, height along y)), not a window that follows the robot: the flies and the
+    target live in the map frame, a fixed grid keeps the warm start valid cell for cell (a scrolling grid
+    would have to shift the field and invent values on the entering edge every cycle), and a target
+    outside a robot-centred window would have to be projected onto its border, which creates false
+    goals.  At 5 cm a 20 m x 20 m map is only 400 x 400 cells.
+    """
+
+    resolution: float = 0.05
+    size_m: tuple[float, float] = (10.0, 10.0)
+    origin: tuple[float, float] = (-5.0, -5.0)
+    robot_radius: float = 0.2
+    safety_margin: float = 0.05          # added to the robot radius when inflating obstacles
+    # Flies between these heights (map z) are obstacles for a ground robot; the rest is floor or overhead.
+    fly_z_min: float = 0.05
+    fly_z_max: float = 1.0
+    # Evidence per cell is a decaying sum of fly weights (fitness scaled so that the mean positive fitness
+    # of an update counts 1) and sonar hits.  A cell is an obstacle at >= occupied_weight; the sum is
+    # capped at evidence_cap so a cell whose flies moved away is freed at most
+    # half_life * log2(cap / threshold) later.
+    occupied_weight: float = 2.0
+    evidence_cap: float = 8.0
+    evidence_half_life_s: float = 2.0
+    sonar_weight: float = 2.0
+    # Relaxation.
+    sor_omega: float = 1.9
+    tolerance: float = 1e-4              # largest relative change of phi per sweep counted as converged
+    sweeps_per_check: int = 4
+    max_sweeps: int = 20000
+    # Controller.
+    v_max: float = 0.5
+    omega_max: float = 1.5
+    heading_gain: float = 2.0
+    turn_in_place_rad: float = math.radians(60.0)
+    slow_clearance_m: float = 0.5        # free space beyond the inflated obstacles under which to slow down
+    slow_target_m: float = 0.8           # distance to the target region under which to slow down
+    min_speed_fraction: float = 0.2
+    escape_speed: float = 0.08           # speed used to back out of inflated obstacles
+
+    def __post_init__(self):
+        positive = ["resolution", "robot_radius", "evidence_half_life_s", "occupied_weight",
+                    "evidence_cap", "tolerance", "v_max", "omega_max", "heading_gain"]
+        for name in positive:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise PlannerInputError(f"PlannerConfig.{name} must be a finite positive number, got {v!r}")
+        if len(self.size_m) != 2 or min(self.size_m) < 4 * self.resolution:
+            raise PlannerInputError(f"PlannerConfig.size_m must be (width, height) of at least 4 cells, "
+                                    f"got {self.size_m!r}")
+        if len(self.origin) != 2 or not all(math.isfinite(o) for o in self.origin):
+            raise PlannerInputError(f"PlannerConfig.origin must be a finite (x, y), got {self.origin!r}")
+        if not 0.0 < self.sor_omega < 2.0:
+            raise PlannerInputError(f"PlannerConfig.sor_omega must be in (0, 2), got {self.sor_omega}")
+        if self.evidence_cap < self.occupied_weight:
+            raise PlannerInputError("PlannerConfig.evidence_cap must be >= occupied_weight")
+        if self.fly_z_max <= self.fly_z_min:
+            raise PlannerInputError("PlannerConfig.fly_z_max must be above fly_z_min")
+        if self.safety_margin < 0 or self.sweeps_per_check < 1 or self.max_sweeps < 1:
+            raise PlannerInputError("PlannerConfig: safety_margin >= 0, sweeps_per_check >= 1, "
+                                    "max_sweeps >= 1 required")
+
+    @property
+    def inflation_m(self) -> float:
+        return self.robot_radius + self.safety_margin
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) = (cells along y, cells along x)."""
+        return (int(round(self.size_m[1] / self.resolution)), int(round(self.size_m[0] / self.resolution)))
+
+
+@dataclass(frozen=True)
+class Command:
+    """Differential-drive command.  ``stop`` True means v = omega = 0 and ``reason`` says why
+    ('target reached', 'no path', 'no target', 'target blocked', 'not solved', 'outside grid',
+    'robot in obstacle'); while moving ``reason`` is 'following field' or 'escaping obstacle'."""
+
+    v: float
+    omega: float
+    stop: bool
+    reason: str
+
+
+@dataclass(frozen=True)
+class SolveReport:
+    sweeps: int
+    converged: bool
+    max_rel_change: float
+    elapsed_ms: float
+    active_cells: int
+    status: str = field(default="ok")   # 'ok', 'no target', 'target blocked'

@@ -1,0 +1,304 @@
+"""HarmonicPlanner: occupancy from flies and sonar, a log-space harmonic field kept up to date by warm
+restarts, and a differential-drive command down its gradient.
+
+Usage (the planner service)::
+
+    pl = HarmonicPlanner(PlannerConfig(resolution=0.05, size_m=(20, 20), origin=(-10, -10)))
+    pl.set_target(x, y, radius)
+    pl.update_flies(points_map, fitness, stamp_ns)   # (N, 3) map frame, (N,)
+    pl.update_sonar(points_xy, stamp_ns)              # (M, 2) map frame
+    pl.solve(max_ms=20)                               # warm-started relaxation, returns a SolveReport
+    cmd = pl.command((x, y, yaw))                     # Command(v, omega, stop, reason)
+    pl.field, pl.grid_origin, pl.resolution, pl.path_from(x, y)
+
+Grid convention: ``field[row, col]`` is the cell whose centre is
+``grid_origin + ((col + 0.5) * resolution, (row + 0.5) * resolution)`` in the map frame.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from . import harmonic as hk
+from .config import Command, PlannerConfig, PlannerInputError, SolveReport
+from .controller import heading_command
+from .occupancy import EvidenceGrid
+
+
+class HarmonicPlanner:
+    def __init__(self, config: PlannerConfig | None = None):
+        self.cfg = config or PlannerConfig()
+        self.grid = EvidenceGrid(self.cfg)
+        h, w = self.cfg.shape
+        self._target: tuple[float, float, float] | None = None
+        self._target_version = 0
+        # Padded (H+2, W+2) solver state: phi = exp(s) * r on ACTIVE cells.
+        self._state = np.zeros((h + 2, w + 2), dtype=np.int8)
+        self._s = np.zeros((h + 2, w + 2))
+        self._r = np.zeros((h + 2, w + 2))
+        self._solved_key: tuple | None = None
+        self._has_solution = False
+        self._status = "no target"
+        self._clearance = np.full((h, w), np.float32(1e6))
+        self._passable = np.ones((h, w), dtype=bool)
+
+    # -- inputs --------------------------------------------------------------------------------------
+    def set_target(self, x: float, y: float, radius: float) -> None:
+        """Target region: a disc in the map frame.  Its cells are the 0-potential Dirichlet boundary."""
+        vals = (x, y, radius)
+        if not all(isinstance(v, (int, float, np.floating)) and math.isfinite(v) for v in vals) or radius <= 0:
+            raise PlannerInputError(f"set_target needs finite x, y and a positive radius, got {vals!r}")
+        self._target = (float(x), float(y), float(radius))
+        self._target_version += 1
+
+    def clear_target(self) -> None:
+        self._target = None
+        self._target_version += 1
+
+    def update_flies(self, points_map, fitness, stamp_ns: int) -> int:
+        """Fold a fly population ((N, 3) map-frame points, (N,) fitness) into the occupancy evidence."""
+        return self.grid.add_flies(points_map, fitness, stamp_ns)
+
+    def update_sonar(self, points_xy, stamp_ns: int) -> None:
+        """Fold sonar echoes ((M, 2) map-frame x, y) into the occupancy evidence."""
+        self.grid.add_sonar(points_xy, stamp_ns)
+
+    # -- grid helpers --------------------------------------------------------------------------------
+    @property
+    def resolution(self) -> float:
+        return self.cfg.resolution
+
+    @property
+    def grid_origin(self) -> tuple[float, float]:
+        return self.cfg.origin
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.cfg.shape
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int] | None:
+        """(row, col) of a map point, or None outside the grid."""
+        col = math.floor((x - self.cfg.origin[0]) / self.cfg.resolution)
+        row = math.floor((y - self.cfg.origin[1]) / self.cfg.resolution)
+        h, w = self.shape
+        if 0 <= row < h and 0 <= col < w:
+            return row, col
+        return None
+
+    def cell_centres(self, rows, cols) -> np.ndarray:
+        res = self.cfg.resolution
+        return np.stack([self.cfg.origin[0] + (np.asarray(cols) + 0.5) * res,
+                         self.cfg.origin[1] + (np.asarray(rows) + 0.5) * res], axis=-1)
+
+    # -- solving -------------------------------------------------------------------------------------
+    def _target_mask(self) -> np.ndarray:
+        h, w = self.shape
+        tx, ty, tr = self._target
+        xs = self.cfg.origin[0] + (np.arange(w) + 0.5) * self.cfg.resolution
+        ys = self.cfg.origin[1] + (np.arange(h) + 0.5) * self.cfg.resolution
+        mask = (xs[None, :] - tx) ** 2 + (ys[:, None] - ty) ** 2 <= tr * tr
+        if not mask.any():          # a target smaller than a cell still gets its cell
+            cell = self.cell_of(tx, ty)
+            if cell is not None:
+                mask[cell] = True
+        return mask
+
+    def _rebuild_state(self) -> None:
+        """Re-derive obstacles, inflation and the connected region; carry the old solution over."""
+        occupied = self.grid.occupied()
+        self._clearance = self.grid.clearance_m(occupied)
+        self._passable = self._clearance > self.cfg.inflation_m
+        h, w = self.shape
+        passable = np.zeros((h + 2, w + 2), dtype=bool)
+        passable[1:-1, 1:-1] = self._passable
+        target = np.zeros_like(passable)
+        target[1:-1, 1:-1] = self._target_mask()
+        target &= passable
+        if not target.any():
+            self._status = "target blocked"
+            self._state[:] = hk.BLOCKED
+            self._has_solution = False
+            return
+        dist = hk.flood_from_target(passable, target)
+        new_state = np.full(passable.shape, hk.BLOCKED, dtype=np.int8)
+        new_state[dist >= 0] = hk.ACTIVE
+        new_state[target] = hk.TARGET
+        active = new_state == hk.ACTIVE
+        # Warm start: keep phi = exp(s) r wherever the cell was already solved; fold r into s.
+        known = active & (self._state == hk.ACTIVE) if self._has_solution else np.zeros_like(active)
+        s = self._s
+        s[known] += np.log(self._r[known])
+        s[new_state == hk.TARGET] = 0.0
+        s[~(known | (new_state == hk.TARGET))] = 0.0
+        # New cells: a BFS guess 0.3 (in log phi) lower per cell than their parent.
+        hk.extend_scale(s, known, new_state, 0.3)
+        self._r = np.where(new_state != hk.BLOCKED, 1.0, 0.0)
+        self._state = new_state
+        self._cells = np.flatnonzero(active.ravel())
+        self._weights = hk.scaled_weights(self._s, self._state)
+        self._status = "ok"
+        self._has_solution = True
+
+    def _rebase(self) -> None:
+        act = self._state == hk.ACTIVE
+        self._s[act] += np.log(self._r[act])
+        self._r[act] = 1.0
+        self._weights = hk.scaled_weights(self._s, self._state)
+
+    def solve(self, max_ms: float | None = None) -> SolveReport:
+        """Bring the field up to date: rebuild obstacles if the evidence or target changed, then relax
+        (symmetric SOR in the scaled log domain) from the previous solution until the largest relative
+        change per sweep is below ``tolerance``, ``max_sweeps`` ran, or ``max_ms`` elapsed (checked every
+        ``sweeps_per_check`` sweeps; the next call continues where this one stopped)."""
+        t0 = time.perf_counter()
+        if self._target is None:
+            self._status = "no target"
+            self._has_solution = False
+            return SolveReport(0, False, float("nan"), 0.0, 0, "no target")
+        key = (self.grid.version, self._target_version)
+        if key != self._solved_key:
+            self._rebuild_state()
+            self._solved_key = key
+        if self._status != "ok":
+            return SolveReport(0, False, float("nan"), (time.perf_counter() - t0) * 1e3, 0, self._status)
+        sweeps, change = 0, float("inf")
+        cfg = self.cfg
+        while sweeps < cfg.max_sweeps:
+            n = min(cfg.sweeps_per_check, cfg.max_sweeps - sweeps)
+            change = hk.scaled_ssor(self._r, self._weights, self._cells, cfg.sor_omega, n)
+            sweeps += n
+            if change < cfg.tolerance:
+                break
+            if max_ms is not None and (time.perf_counter() - t0) * 1e3 >= max_ms:
+                break
+            if np.abs(np.log(self._r.ravel()[self._cells])).max(initial=0.0) > 30.0:
+                self._rebase()          # keep r near 1 so exp(s) r never leaves float64's range
+        self._rebase()
+        return SolveReport(sweeps, change < cfg.tolerance, float(change), (time.perf_counter() - t0) * 1e3,
+                           int(self._cells.size), "ok")
+
+    # -- outputs -------------------------------------------------------------------------------------
+    @property
+    def log_phi(self) -> np.ndarray:
+        """(H, W) log of the complementary potential phi = 1 - u: 0 on the target, decreasing away from
+        it, -inf on obstacles and wherever the target cannot be reached.  Steering ascends it."""
+        psi = np.where(self._state != hk.BLOCKED, self._s + np.log(np.maximum(self._r, 1e-300)), -np.inf)
+        psi[self._state == hk.TARGET] = 0.0
+        return psi[1:-1, 1:-1]
+
+    @property
+    def field(self) -> np.ndarray:
+        """(H, W) potential to descend, ``-log(1 - u)``: 0 on the target, growing away from it, +inf on
+        (inflated) obstacles and unreachable cells.  Finite and with a usable gradient everywhere the
+        target is reachable, however far (the harmonic u itself would round to 1 there)."""
+        return -self.log_phi
+
+    @property
+    def passable(self) -> np.ndarray:
+        """(H, W) bool: cells outside the inflated obstacles."""
+        return self._passable
+
+    @property
+    def clearance(self) -> np.ndarray:
+        """(H, W) distance (m) to the nearest occupied cell."""
+        return self._clearance
+
+    @property
+    def status(self) -> str:
+        return self._status
+
+    def path_from(self, x: float, y: float, max_steps: int | None = None) -> np.ndarray:
+        """(K, 2) map-frame cell centres of the discrete steepest descent from (x, y) to the target
+        (empty if (x, y) is outside the grid or not connected to the target)."""
+        cell = self.cell_of(x, y)
+        if cell is None or not self._has_solution or self._state[cell[0] + 1, cell[1] + 1] == hk.BLOCKED:
+            return np.zeros((0, 2))
+        psi = np.full(self._state.shape, -np.inf)
+        psi[1:-1, 1:-1] = self.log_phi
+        steps = max_steps or int(4 * sum(self.shape))
+        cells = hk.descent_path(psi, self._state, cell[0] + 1, cell[1] + 1, steps)
+        return self.cell_centres(cells[:, 0] - 1, cells[:, 1] - 1)
+
+    def _descent_direction(self, x: float, y: float) -> tuple[float, float] | None:
+        """Gradient of log phi at (x, y), bilinear over the four surrounding cell-centre gradients."""
+        psi = np.full(self._state.shape, -np.inf)
+        psi[1:-1, 1:-1] = self.log_phi
+        res = self.cfg.resolution
+        fx = (x - self.cfg.origin[0]) / res - 0.5 + 1      # padded continuous column
+        fy = (y - self.cfg.origin[1]) / res - 0.5 + 1
+        c0, r0 = int(math.floor(fx)), int(math.floor(fy))
+        gx = gy = wsum = 0.0
+        for dr in (0, 1):
+            for dc in (0, 1):
+                r, c = r0 + dr, c0 + dc
+                if not (1 <= r < psi.shape[0] - 1 and 1 <= c < psi.shape[1] - 1) or not np.isfinite(psi[r, c]):
+                    continue
+                wgt = (1 - abs(fx - c)) * (1 - abs(fy - r))
+                g = _cell_gradient(psi, r, c)
+                gx += wgt * g[0]
+                gy += wgt * g[1]
+                wsum += wgt
+        if wsum == 0 or gx * gx + gy * gy == 0:
+            return None
+        return gx, gy
+
+    def command(self, robot_pose_xyyaw) -> Command:
+        """Differential-drive command for a robot at (x, y, yaw) in the map frame."""
+        x, y, yaw = (float(v) for v in robot_pose_xyyaw)
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise PlannerInputError(f"robot pose must be finite (x, y, yaw), got {robot_pose_xyyaw!r}")
+        if self._target is None:
+            return Command(0.0, 0.0, True, "no target")
+        tx, ty, tr = self._target
+        dist_target = math.hypot(tx - x, ty - y)
+        if dist_target <= tr:
+            return Command(0.0, 0.0, True, "target reached")
+        if self._status == "target blocked":
+            return Command(0.0, 0.0, True, "target blocked")
+        if not self._has_solution:
+            return Command(0.0, 0.0, True, "not solved")
+        cell = self.cell_of(x, y)
+        if cell is None:
+            return Command(0.0, 0.0, True, "outside grid")
+        clearance = float(self._clearance[cell])
+        state = self._state[cell[0] + 1, cell[1] + 1]
+        if state == hk.BLOCKED:
+            if self._passable[cell]:
+                return Command(0.0, 0.0, True, "no path")
+            # Inside the inflated obstacles (noise, or an obstacle seen late): back away from the nearest
+            # obstacle along the clearance gradient, slowly, until the field takes over again.
+            g = _cell_gradient(self._clearance, cell[0], cell[1])
+            if g[0] == 0 and g[1] == 0:
+                return Command(0.0, 0.0, True, "robot in obstacle")
+            v, w = heading_command(math.atan2(g[1], g[0]), yaw, self.cfg, speed_limit=self.cfg.escape_speed)
+            return Command(v, w, False, "escaping obstacle")
+        direction = self._descent_direction(x, y)
+        if direction is None:
+            return Command(0.0, 0.0, True, "no path")
+        slow_c = (clearance - self.cfg.inflation_m) / self.cfg.slow_clearance_m
+        slow_t = (dist_target - tr) / self.cfg.slow_target_m
+        frac = min(1.0, max(self.cfg.min_speed_fraction, min(slow_c, slow_t)))
+        v, w = heading_command(math.atan2(direction[1], direction[0]), yaw, self.cfg,
+                               speed_limit=self.cfg.v_max * frac)
+        return Command(v, w, False, "following field")
+
+
+def _cell_gradient(a: np.ndarray, r: int, c: int) -> tuple[float, float]:
+    """(d/dx, d/dy) of ``a`` at [r, c]: central differences where both neighbours are finite, one-sided
+    where only one is (obstacles are -inf in log phi)."""
+    out = []
+    for (ra, ca), (rb, cb) in (((r, c + 1), (r, c - 1)), ((r + 1, c), (r - 1, c))):
+        hi = a[ra, ca] if 0 <= ra < a.shape[0] and 0 <= ca < a.shape[1] else -np.inf
+        lo = a[rb, cb] if 0 <= rb < a.shape[0] and 0 <= cb < a.shape[1] else -np.inf
+        centre = a[r, c]
+        if np.isfinite(hi) and np.isfinite(lo):
+            out.append(0.5 * (hi - lo))
+        elif np.isfinite(hi):
+            out.append(hi - centre)
+        elif np.isfinite(lo):
+            out.append(centre - lo)
+        else:
+            out.append(0.0)
+    return float(out[0]), float(out[1])
