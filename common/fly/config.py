@@ -40,7 +40,7 @@ class EvolverConfig:
     # Steady state: a mutated child competes with its parent (deterministic crowding) — keeps every fly
     # in its own image niche; other children replace the loser of a reverse tournament.
     crowding: bool = True
-    batch_fraction: float = 0.25      # steady state: offspring made per vectorised batch, as a fraction of N
+    batch_fraction: float = 0.5       # steady state: offspring made per vectorised batch, as a fraction of N
     # 2-D sharing over a grid of cells in the left image.
     sharing_radius_px: float | None = None   # cell size; None = sqrt(W·H / population)
     sharing_strength: float = 1.0            # 0 disables sharing
@@ -58,6 +58,10 @@ class EvolverConfig:
                                       # matching: robust to exposure differences; None = raw images
     gradient_window: int | None = None  # box (px) over which G averages gradient energy; None = N
     gradient_min_half: bool = True    # G from the least textured half-window (see fitness.gradient_energy)
+
+    # Evaluate batches of at least this many flies on all cores, smaller ones on the calling thread
+    # (a parallel region on a busy shared machine can stall for a scheduler time slice).
+    parallel_min_flies: int = 20000
 
     def __post_init__(self):
         self.validate()

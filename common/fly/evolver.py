@@ -163,8 +163,9 @@ class FlyEvolver:
         if self._frame is None:
             raise NoImagesError("no images yet: call set_images() first")
         pos = np.ascontiguousarray(positions, dtype=np.float32)
-        fit = image_fitness(self._frame, self.calib, pos, subpixel=self.config.subpixel,
-                            vertical=self.config.subpixel_vertical)
+        c = self.config
+        fit = image_fitness(self._frame, self.calib, pos, subpixel=c.subpixel, vertical=c.subpixel_vertical,
+                            parallel=len(pos) >= c.parallel_min_flies)
         for name, (fn, w) in self._terms.items():
             t = np.asarray(fn(pos), dtype=np.float32)
             if t.shape != (len(pos),) or not np.all(np.isfinite(t)):

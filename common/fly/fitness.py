@@ -99,11 +99,16 @@ def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.nd
     if not min_half_window or n < 3:
         return cv2.boxFilter(sq_grad, cv2.CV_32F, (n, n), borderType=b)
     h = n // 2
-    halves = [cv2.boxFilter(sq_grad, cv2.CV_32F, (h + 1, n), anchor=(h, h), borderType=b),  # left
-              cv2.boxFilter(sq_grad, cv2.CV_32F, (h + 1, n), anchor=(0, h), borderType=b),  # right
-              cv2.boxFilter(sq_grad, cv2.CV_32F, (n, h + 1), anchor=(h, h), borderType=b),  # top
-              cv2.boxFilter(sq_grad, cv2.CV_32F, (n, h + 1), anchor=(h, 0), borderType=b)]  # bottom
-    return cv2.min(cv2.min(halves[0], halves[1]), cv2.min(halves[2], halves[3]))
+    # Separable: full-height column sums then half-width row sums (left/right halves), and full-width
+    # row sums then half-height column sums (top/bottom halves).  Sums, not means: all four halves have
+    # the same (h + 1)·n pixels, and the scale is folded into the saturation constant by the caller.
+    cols = cv2.boxFilter(sq_grad, cv2.CV_32F, (1, n), normalize=False, borderType=b)
+    rows = cv2.boxFilter(sq_grad, cv2.CV_32F, (n, 1), normalize=False, borderType=b)
+    left = cv2.boxFilter(cols, cv2.CV_32F, (h + 1, 1), anchor=(h, 0), normalize=False, borderType=b)
+    right = cv2.boxFilter(cols, cv2.CV_32F, (h + 1, 1), anchor=(0, 0), normalize=False, borderType=b)
+    top = cv2.boxFilter(rows, cv2.CV_32F, (1, h + 1), anchor=(0, h), normalize=False, borderType=b)
+    bottom = cv2.boxFilter(rows, cv2.CV_32F, (1, h + 1), anchor=(0, 0), normalize=False, borderType=b)
+    return cv2.min(cv2.min(left, right), cv2.min(top, bottom)) * np.float32(1.0 / ((h + 1) * n))
 
 
 def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
@@ -148,8 +153,7 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
 _BLOCK = 64  # flies per parallel work item (one scratch buffer each)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
-def _fitness_kernel(L, R, G, guide, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical,
+def _fitness_kernel_py(L, R, G, guide, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical,
                     inv_floor, inv_gamma, wexp, out):
     """L, R: H×(W·C) float32 (rows of interleaved colours); wexp: nw×(nw·C) per-sample weights."""
     H = L.shape[0]
@@ -263,10 +267,23 @@ def _fitness_kernel(L, R, G, guide, pos, fx, fy, cxl, cxr, cy, baseline, half, C
             out[k] = g / (np.float32(1.0) + acc * inv_floor)
 
 
+# The same loop compiled twice: across all cores, and on the calling thread only.  On a small machine
+# shared with other busy processes a parallel region can stall for a scheduler time slice (milliseconds)
+# waiting for a descheduled worker, so modest batches are better evaluated serially.
+_fitness_kernel_parallel = numba.njit(parallel=True, cache=True, fastmath=True)(_fitness_kernel_py)
+_fitness_kernel_serial = numba.njit(parallel=False, cache=True, fastmath=True)(_fitness_kernel_py)
+
+
 def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.ndarray,
                   subpixel: bool = True, vertical: bool = False, support_gamma: float | None = None,
-                  out: np.ndarray | None = None) -> np.ndarray:
-    """(N,) float32 image fitness of (N, 3) left-optical positions on a prepared frame."""
+                  out: np.ndarray | None = None, parallel: bool = True) -> np.ndarray:
+    """(N,) float32 image fitness of (N, 3) left-optical positions on a prepared frame.
+
+    ``subpixel``: right window sampled at the exact disparity (linear along the epipolar line), left at
+    the nearest pixel; ``vertical`` additionally interpolates both windows bilinearly; neither: nearest
+    pixels.  ``support_gamma`` (grey levels) enables colour-adaptive support weights (slower, optional).
+    ``parallel``: use all cores (numba prange) or only the calling thread.
+    """
     pos = np.ascontiguousarray(positions, dtype=np.float32)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions must be (N, 3), got {np.shape(positions)}")
@@ -275,7 +292,8 @@ def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.
     H, W, C = frame.left.shape
     half = frame.weights.shape[0] // 2
     wexp = np.ascontiguousarray(np.repeat(frame.weights, C, axis=1))
-    _fitness_kernel(frame.left.reshape(H, W * C), frame.right.reshape(H, W * C), frame.gradient_norm,
+    kernel = _fitness_kernel_parallel if parallel else _fitness_kernel_serial
+    kernel(frame.left.reshape(H, W * C), frame.right.reshape(H, W * C), frame.gradient_norm,
                     frame.guide, pos, calib.fx, calib.fy, calib.cx_left, calib.cx_right, calib.cy,
                     calib.baseline, half, C, bool(subpixel), bool(vertical), np.float32(frame.inv_floor),
                     np.float32(1.0 / support_gamma if support_gamma else 0.0), wexp, out)
