@@ -201,8 +201,9 @@ def body(node, args) -> int:
     period = 1.0 / args.image_hz
     errors = 0
     try:
-        while not node.stopping:
+        while True:
             t0 = time.monotonic()
+            last_round = node.stopping  # one more round after the stop request drains what arrived
             batch = list(inbox.drain())
             batch += [(stream, msg) for stream, sub in latest.items() if (msg := sub.take()) is not None]
             for stream, msg in batch:
@@ -219,6 +220,8 @@ def body(node, args) -> int:
                     node.counters.add("view_errors")
                     if errors <= 5 or errors % 100 == 0:
                         log.warning("cannot view a message on %s: %s (%d so far)", stream, e, errors)
+            if last_round:
+                break
             node.sleep(max(0.0, period - (time.monotonic() - t0)))
     finally:
         try:

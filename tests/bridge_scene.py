@@ -110,7 +110,7 @@ def messages(frames: int = 30, flies: int = 2000, seed: int = 0, calib: StereoCa
                                                    counters={"stereo_frame_received": i, "rejected": i // 10,
                                                              "stereo_frame_skipped": i // 3},
                                                    header=m.header(i + 1, 5 + i, ""))
-        if i == 20:
+        if i == min(20, frames - 1):
             yield "slam/map", fly_map(calib, 500, rng)
 
 
