@@ -94,7 +94,7 @@ class PoseSequenceMotion:
 
     @property
     def finished(self) -> bool:
-        return self.t >= self.knots_t[-1]
+        return self.t >= self.knots_t[-1] - 1e-9
 
     def pose_at(self, t: float) -> np.ndarray:
         return np.array([np.interp(t, self.knots_t, self.knots[:, k]) for k in range(3)])

@@ -12,6 +12,8 @@ vignetting, read + shot noise, quantisation.  The two cameras get different gain
 """
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -72,9 +74,17 @@ def _screen_bboxes(cam_c, R_cw, fx, fy, cx, cy, W, H, origin, u, v):
     return out, zmin
 
 
-@nb.njit(cache=True, inline="always")
-def _bilinear_add(texels, off, w, h, x, y, wrap, weight, acc):
-    """acc[:] += weight × bilinear sample (RGB) of one mip level at texel coordinates (x, y)."""
+@nb.njit(cache=True)
+def _fast_log2(x):
+    """log2 of x > 0 to within 0.01 (mip selection does not need more), much cheaper than np.log2."""
+    m, e = math.frexp(x)           # x = m · 2^e, m in [0.5, 1)
+    y = 2.0 * m - 1.0              # log2(1 + y), y in [0, 1)
+    return (e - 1) + y * (1.3465 - 0.3465 * y)
+
+
+@nb.njit(cache=True)
+def _bilinear(texels, off, w, h, x, y, wrap, weight):
+    """weight × bilinear sample (r, g, b) of one mip level at texel coordinates (x, y)."""
     x -= 0.5
     y -= 0.5
     x0 = np.floor(x)
@@ -85,11 +95,11 @@ def _bilinear_add(texels, off, w, h, x, y, wrap, weight, acc):
     iy0 = int(y0)
     ix1 = ix0 + 1
     iy1 = iy0 + 1
-    if wrap:
-        ix0 %= w
-        ix1 %= w
-        iy0 %= h
-        iy1 %= h
+    if wrap:  # texture sizes are powers of two: masking wraps negatives too
+        ix0 &= w - 1
+        ix1 &= w - 1
+        iy0 &= h - 1
+        iy1 &= h - 1
     else:
         ix0 = min(max(ix0, 0), w - 1)
         ix1 = min(max(ix1, 0), w - 1)
@@ -103,9 +113,10 @@ def _bilinear_add(texels, off, w, h, x, y, wrap, weight, acc):
     w01 = fx * (1 - fy) * weight
     w10 = (1 - fx) * fy * weight
     w11 = fx * fy * weight
-    for ch in range(3):
-        acc[ch] += (texels[i00, ch] * w00 + texels[i01, ch] * w01
-                    + texels[i10, ch] * w10 + texels[i11, ch] * w11)
+    r = texels[i00, 0] * w00 + texels[i01, 0] * w01 + texels[i10, 0] * w10 + texels[i11, 0] * w11
+    g = texels[i00, 1] * w00 + texels[i01, 1] * w01 + texels[i10, 1] * w10 + texels[i11, 1] * w11
+    b = texels[i00, 2] * w00 + texels[i01, 2] * w01 + texels[i10, 2] * w10 + texels[i11, 2] * w11
+    return r, g, b
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
@@ -125,7 +136,6 @@ def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
     for j in nb.prange(H):
         # Quads whose screen box covers this row, nearest first (``order`` is sorted by zmin).
         rowq = np.empty(order.shape[0], np.int64)
-        acc = np.zeros(3, np.float32)
         nq = 0
         for k in range(order.shape[0]):
             q = order[k]
@@ -214,12 +224,14 @@ def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
                 wrap = False
             cos_t = abs(bden) / dn
             foot = bt * dn / (fx * np.sqrt(max(cos_t, 0.02)))
-            lod = np.log2(max(foot * tpm, 1.0))
+            lod = _fast_log2(max(foot * tpm, 1.0))
             maxl = nlev[tid] - 1
             if lod > maxl:
                 lod = float(maxl)
             l0 = int(lod)
-            fr = lod - l0
+            # "Brilinear": a single bilinear level except near the middle between two levels, where the
+            # two are blended (saves most second-level fetches, no visible level seams).
+            fr = min(max((lod - l0 - 0.25) * 2.0, 0.0), 1.0)
             l1 = min(l0 + 1, maxl)
             # Shading: facing normal towards the camera.
             sg = -1.0 if bden > 0 else 1.0
@@ -241,54 +253,54 @@ def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
                     ndl = (nx * lx + ny * ly + nz * lz) / np.sqrt(d2 + 1e-12)
                     if ndl > 0:
                         shade += lights[li, 3] * ndl / (1.0 + d2 / (lights[li, 4] * lights[li, 4]))
-            acc[0] = 0.0
-            acc[1] = 0.0
-            acc[2] = 0.0
             w0 = tw[tid, l0]
             h0 = th[tid, l0]
-            if fr > 0.02 and l1 != l0:
-                _bilinear_add(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0 - fr, acc)
+            if 0.0 < fr < 1.0 and l1 != l0:
+                r0, g0, b0 = _bilinear(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0 - fr)
                 w1 = tw[tid, l1]
                 h1 = th[tid, l1]
-                _bilinear_add(texels, toff[tid, l1], w1, h1, s * w1, (1.0 - tt) * h1, wrap, fr, acc)
+                r1, g1, b1 = _bilinear(texels, toff[tid, l1], w1, h1, s * w1, (1.0 - tt) * h1, wrap, fr)
+                r0 += r1
+                g0 += g1
+                b0 += b1
             else:
-                _bilinear_add(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0, acc)
-            for ch in range(3):
-                val = acc[ch] * shade
-                if accumulate:
-                    out_rad[j, i, ch] += val
-                else:
-                    out_rad[j, i, ch] = val
+                lv = l1 if fr >= 1.0 else l0
+                w0 = tw[tid, lv]
+                h0 = th[tid, lv]
+                r0, g0, b0 = _bilinear(texels, toff[tid, lv], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0)
+            if accumulate:
+                out_rad[j, i, 0] += r0 * shade
+                out_rad[j, i, 1] += g0 * shade
+                out_rad[j, i, 2] += b0 * shade
+            else:
+                out_rad[j, i, 0] = r0 * shade
+                out_rad[j, i, 1] = g0 * shade
+                out_rad[j, i, 2] = b0 * shade
 
 
-@nb.njit(cache=True, inline="always")
-def _splitmix64(x):
-    x = (x + np.uint64(0x9E3779B97F4A7C15))
-    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
+NOISE_TABLE_BITS = 20
 
 
-@nb.njit(cache=True, inline="always")
-def _gauss(key):
-    """Approximately standard-normal value from a 64-bit key (sum of four 16-bit uniforms, Irwin–Hall)."""
-    h = _splitmix64(key)
-    m = np.uint64(0xFFFF)
-    s = float(h & m) + float((h >> np.uint64(16)) & m) + float((h >> np.uint64(32)) & m) + float(h >> np.uint64(48))
-    return (s / 65536.0 - 2.0) * 1.7320508075688772
+def noise_table(seed: int) -> np.ndarray:
+    """2^20 standard-normal float32 values; each image reads them in a fresh odd-stride order."""
+    return np.random.default_rng([int(seed), 0x0153]).standard_normal(1 << NOISE_TABLE_BITS, dtype=np.float32)
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def _sensor(rad, scale, gain, offset, vignette, noise_key, read_noise, shot_noise, out):
+def _sensor(rad, scale, gain, offset, vignette, table, start, stride, read_noise, shot_noise, out):
+    """Sensor model; the noise of value k (pixel-major, channel-minor) is table[(start + k·stride) mod N]
+    with an odd stride, a permutation of the table, so every image gets its own noise pattern cheaply
+    and independently of thread scheduling."""
     H, W = vignette.shape
-    base = _splitmix64(np.uint64(noise_key))
+    mask = table.shape[0] - 1
     for j in nb.prange(H):
         for i in range(W):
             g = scale * gain * vignette[j, i] * 255.0
+            k0 = (j * W + i) * 3
             for ch in range(3):
                 val = rad[j, i, ch] * g + offset
                 sig = np.sqrt(read_noise * read_noise + shot_noise * max(val, 0.0))
-                val += sig * _gauss(base + np.uint64((j * W + i) * 3 + ch))
+                val += sig * table[(start + (k0 + ch) * stride) & mask]
                 val = np.floor(val + 0.5)
                 out[j, i, ch] = np.uint8(min(max(val, 0.0), 255.0))
 
@@ -336,11 +348,15 @@ class Renderer:
 
     @staticmethod
     def expose(rad: np.ndarray, scale: float, gain: float, offset: float, vignette: np.ndarray,
-               noise_key: int, read_noise: float, shot_noise: float) -> np.ndarray:
-        """uint8 image of a radiance image through the sensor model.  The noise is a deterministic
-        function of ``noise_key`` (a 63-bit integer: draw a fresh one per image) and the pixel, so the
-        result does not depend on thread scheduling."""
+               table: np.ndarray, rng: np.random.Generator, read_noise: float, shot_noise: float) -> np.ndarray:
+        """uint8 image of a radiance image through the sensor model (gain, black offset, vignetting,
+        read + shot noise drawn from ``table`` in an order chosen by ``rng``, rounding)."""
+        n = table.shape[0]
+        if n & (n - 1):
+            raise ValueError("noise table length must be a power of two")
         out = np.empty(rad.shape, np.uint8)
-        _sensor(rad, float(scale), float(gain), float(offset), vignette, int(noise_key) & ((1 << 63) - 1),
+        start = int(rng.integers(0, n))
+        stride = int(rng.integers(0, 128)) * 2 + 1  # odd: a permutation; small: cache-friendly
+        _sensor(rad, float(scale), float(gain), float(offset), vignette, table, start, stride,
                 float(read_noise), float(shot_noise), out)
         return out

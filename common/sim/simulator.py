@@ -27,7 +27,7 @@ import numpy as np
 from common.camera import StereoCalibration
 from common.geometry import R_BODY_OPTICAL, make_transform, planar_pose, rot_y
 from common.sim.motion import CommandMotion, make_motion
-from common.sim.render import Renderer
+from common.sim.render import Renderer, noise_table
 from common.sim.scenario import Scenario
 from common.sim.sensors import OdometryReading, SonarReading, SonarRing, WheelOdometry
 from common.sim.world import World
@@ -93,10 +93,12 @@ class Simulator:
         self.renderer = Renderer(self.world, c.width, c.height, c.fx, c.fy, c.cx_left, c.cy)
         self._T_left_right = make_transform(None, [cam.baseline, 0.0, 0.0])
         self._vignette = self.renderer.vignette(cam.vignetting)
+        self._rad_buffer = np.empty((c.height, c.width, 3), np.float32)
 
         ss = np.random.SeedSequence(self.seed)
         r_odo, r_sonar, r_cam = (np.random.default_rng(s) for s in ss.spawn(3))
         self._cam_rng = r_cam
+        self._noise_table = noise_table(self.seed)
         self.odometry = WheelOdometry(scenario.odometry, r_odo)
         self.sonar = SonarRing(scenario.sonar, r_sonar)
         self._sonar_segments = self.world.obstacle_segments(scenario.sonar.height_m, scenario.sonar.height_m)
@@ -163,8 +165,8 @@ class Simulator:
         if isinstance(self.motion, CommandMotion) and (vx != 0 or omega != 0):
             r = self.scenario.robot_radius
             d_new = self.world.clearance(np.array([new_pose[:2]]))[0]
-            d_old = self.world.clearance(np.array([self.pose[:2]]))[0]
-            if d_new < r and d_new < d_old:  # would move into (or deeper into) an obstacle: blocked
+            if d_new < r and d_new < self.world.clearance(np.array([self.pose[:2]]))[0]:
+                # would move into (or deeper into) an obstacle: blocked
                 self.collisions += 1
                 new_pose, vx, vy, omega = self.pose, 0.0, 0.0, 0.0
         self.odometry.move(vx, omega, dt)
@@ -214,16 +216,13 @@ class Simulator:
             bases = [self.truth_at(int(t)) for t in np.linspace(t0, stamp, n)]
         images, depth = [], None
         for side, T_left_side in (("left", np.eye(4)), ("right", self._T_left_right)):
-            rad = np.zeros((self.calibration.height, self.calibration.width, 3), np.float32)
-            d = None
-            for k, Tb in enumerate(bases):
-                T_map_cam = Tb @ T_base_left @ T_left_side
-                if k == 0:
-                    r, d = self.renderer.radiance(T_map_cam)
-                    rad = r
-                else:
-                    self.renderer.radiance(T_map_cam, out_rad=rad, out_depth=np.empty_like(d), accumulate=True)
-            if n > 1:
+            # Radiance goes to a reused scratch buffer; depth and images are fresh (handed to the caller).
+            rad, d = self.renderer.radiance(bases[0] @ T_base_left @ T_left_side, out_rad=self._rad_buffer)
+            if n > 1:  # motion blur: average the radiance over the exposure window
+                scratch = np.empty_like(d)
+                for Tb in bases[1:]:
+                    self.renderer.radiance(Tb @ T_base_left @ T_left_side, out_rad=rad, out_depth=scratch,
+                                           accumulate=True)
                 rad /= n
                 if side == "left":
                     d = self.renderer.radiance(T_map_base @ T_base_left)[1]
@@ -231,7 +230,7 @@ class Simulator:
                 depth = d
             gain = 1.0 if side == "left" else cam.gain_right
             offset = 0.0 if side == "left" else cam.offset_right
-            key = int(self._cam_rng.integers(0, 2 ** 62))
-            images.append(self.renderer.expose(rad, cam.exposure, gain, offset, self._vignette, key,
+            images.append(self.renderer.expose(rad, cam.exposure, gain, offset, self._vignette,
+                                               self._noise_table, self._cam_rng,
                                                cam.read_noise, cam.shot_noise))
         return StereoImages(stamp, images[0], images[1], depth, T_map_base)
