@@ -58,6 +58,7 @@ class EvolverConfig:
                                       # matching: robust to exposure differences; None = raw images
     gradient_window: int | None = None  # box (px) over which G averages gradient energy; None = N
     gradient_min_half: bool = True    # G from the least textured half-window (see fitness.gradient_energy)
+    gradient_epipolar: bool = True    # G from the x gradient only (what constrains disparity); else |∇|²
 
     # Evaluate batches of at least this many flies on all cores, smaller ones on the calling thread
     # (a parallel region on a busy shared machine can stall for a scheduler time slice).

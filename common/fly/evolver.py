@@ -122,7 +122,7 @@ class FlyEvolver:
             self._frames_since_noise += 1
         frame = prepare_frame(self.calib, left, right, c.neighbourhood, sigma, c.ssd_floor_scale,
                               c.gradient_saturation, c.window_sigma, c.mean_removal_px, c.gradient_window,
-                              c.gradient_min_half)
+                              c.gradient_min_half, c.gradient_epipolar)
         if c.noise_sigma is None and sigma is None:
             self._noise_sigma, self._frames_since_noise = frame.noise_sigma, 1
         self._frame = frame
@@ -242,7 +242,7 @@ class FlyEvolver:
         if mut.any():
             child[mut] = mutate(self.calib, self._pos[parents[mut]], c.mutation_sigma_px, sigma[mut],
                                 self._d_range, rng)
-        for op, fn in ((_CROSS2, None), (_CROSS3, None)):
+        for op in (_CROSS2, _CROSS3):
             sel = ops == op
             if not sel.any():
                 continue
@@ -276,7 +276,9 @@ class FlyEvolver:
             done += m
             shared = self.shared_fitness()
             ops = self._operators(m)
-            parents = self._select_parents(shared, m)
+            # Parents in population (cell) order: children land near them, so the batch is evaluated in
+            # image order too (cache-friendly); the operators are iid, so pairing stays random.
+            parents = np.sort(self._select_parents(shared, m))
             child, sigma = self._make_offspring(parents, ops)
             fit = self.evaluate(child)
             # Victims: the parent for mutated children (crowding), else the loser of a reverse tournament.

@@ -114,7 +114,8 @@ def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.nd
 def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
                   noise_sigma: float | None, ssd_floor_scale: float, gradient_saturation: float,
                   window_sigma: float | None, mean_removal_px: int | None = None,
-                  gradient_window: int | None = None, min_half_window: bool = True) -> PreparedFrame:
+                  gradient_window: int | None = None, min_half_window: bool = True,
+                  epipolar_gradient: bool = True) -> PreparedFrame:
     """Convert a stereo pair once per frame: float images, noise floor and the gradient normaliser map.
 
     ``mean_removal_px`` (odd) subtracts each image's local mean over that box before matching, which makes
@@ -140,9 +141,11 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     sigma = max(sigma, 0.5)  # quantisation alone is ~0.3 grey levels; never trust a zero estimate
     floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-    energy = gradient_energy(cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy)),
-                             int(gradient_window or neighbourhood), min_half_window)
+    gy = None if epipolar_gradient else cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+    # Only the gradient along the epipolar lines (x) constrains disparity: a horizontal edge has strong
+    # vertical gradient but matches at every disparity along it (aperture problem).
+    sq = cv2.multiply(gx, gx) if epipolar_gradient else cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy))
+    energy = gradient_energy(sq, int(gradient_window or neighbourhood), min_half_window)
     sat2 = np.float32((gradient_saturation * sigma) ** 2)
     G = energy / (energy + sat2) if sat2 > 0 else np.ones_like(energy)
     return PreparedFrame(np.ascontiguousarray(L), np.ascontiguousarray(R), np.ascontiguousarray(G), sigma,
