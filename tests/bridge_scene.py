@@ -131,3 +131,18 @@ def rrd_rows(path) -> dict[str, dict[str, list]]:
                 col = col.cast(pa.int64())
             cols.setdefault(key, []).extend(col.to_pylist())
     return out
+
+
+def trajectory_points(rows: dict, stream: str) -> np.ndarray:
+    """The whole logged trajectory of a pose stream: the last strip of each segment entity, joined
+    (segments share their boundary point)."""
+    from common.viz import paths as P
+
+    prefix = f"/{P.trajectory_path(stream)}/"
+    parts = []
+    for entity in sorted(e for e in rows if e.startswith(prefix)):
+        cols = rows[entity]
+        last = int(np.argmax(np.array(cols["stamp"], dtype=np.int64)))
+        strip = np.array(cols["LineStrips3D:strips"][last][0])
+        parts.append(strip if not parts else strip[1:])
+    return np.concatenate(parts) if parts else np.zeros((0, 3))

@@ -11,7 +11,7 @@ from common.bus import BusOptions, Node
 from common.messages import Heartbeat
 from common.viz import paths as P
 from tests import bridge_scene
-from tests.bridge_scene import rrd_rows
+from tests.bridge_scene import rrd_rows, trajectory_points
 from tests.conftest import free_port
 from tests.helpers import ROOT, hub, start_module, stop, wait_until
 
@@ -76,12 +76,11 @@ def test_bridge_logs_the_bus_live_and_to_a_file_that_verifies_after_sigterm(zeno
     rows = rrd_rows(rrd)
     for entity in (P.LEFT, P.RIGHT, P.FLIES, P.LEFT_FLIES, P.ROBOT, P.MAP_POINTS, P.FIELD, P.TARGET_3D,
                    f"{P.CMD}/linear_mps", f"{P.PROGRESS}/feeder", f"{P.ALIVE}/feeder",
-                   *(P.trajectory_path(s) for s in P.TRAJECTORY_STYLE)):
+                   *(P.trajectory_segment_path(s, 0) for s in P.TRAJECTORY_STYLE)):
         assert f"/{entity}" in rows, f"{entity} missing from the .rrd"
     assert rows[f"/{P.LEFT}"]["static:Pinhole:resolution"], "calibration logged as a static Pinhole"
     assert 1 <= len(rows[f"/{P.LEFT}"]["EncodedImage:blob"]) <= 20
-    truth = rows[f"/{P.trajectory_path('truth/pose')}"]["LineStrips3D:strips"]
-    assert max(len(s[0]) for s in truth) == 20, "every truth pose reached the trajectory"
+    assert len(trajectory_points(rows, "truth/pose")) == 20, "every truth pose reached the trajectory"
     assert [v[0] for v in rows[f"/{P.ALIVE}/feeder"]["Scalars:scalars"]][-1] == 0.0, "the feeder left"
     cloud = np.array(rows[f"/{P.MAP_POINTS}"]["Points3D:positions"][-1])
     assert np.allclose(cloud[:, 0], bridge_scene.WALL_X, atol=1e-4)

@@ -13,7 +13,7 @@ from common.viz import RerunLogger, blueprint
 from common.viz import paths as P
 from common.viz.colours import field_image, field_pixels, fitness_colours
 from tests import bridge_scene
-from tests.bridge_scene import rrd_rows
+from tests.bridge_scene import rrd_rows, trajectory_points
 from tests.helpers import ROOT
 
 RERUN = ROOT / ".venv" / "bin" / "rerun"
@@ -65,7 +65,7 @@ def test_synthetic_run_fills_every_view_and_the_file_verifies(synthetic_rrd):
         f"{P.RATES}/localiser/frames_per_s": "Scalars:scalars", f"{P.PROBLEMS}/planner/rejected": "Scalars:scalars",
         f"{P.ALIVE}/evolver": "Scalars:scalars", P.EVENTS: "TextLog:text",
     }
-    expected.update({P.trajectory_path(s): "LineStrips3D:strips" for s in P.TRAJECTORY_STYLE})
+    expected.update({P.trajectory_segment_path(s, 0): "LineStrips3D:strips" for s in P.TRAJECTORY_STYLE})
     for entity, column in expected.items():
         assert f"/{entity}" in rows, f"{entity} was not logged"
         assert rows[f"/{entity}"].get(column), f"{entity} has no {column}"
@@ -117,14 +117,26 @@ def test_fitness_colours_run_from_cold_to_hot_and_grey_out_invalid_flies():
 
 def test_trajectories_grow_and_the_fused_pose_moves_the_robot(synthetic_rrd):
     _, rows, frames = synthetic_rrd
-    truth = _by_stamp(rows[f"/{P.trajectory_path('truth/pose')}"], "LineStrips3D:strips")
+    truth = _by_stamp(rows[f"/{P.trajectory_segment_path('truth/pose', 0)}"], "LineStrips3D:strips")
     lengths = [len(strips[0]) for strips in truth]
     assert lengths == sorted(lengths) and lengths[-1] == frames, "the last strip holds every (distinct) pose"
-    assert np.allclose(truth[-1][0][0], bridge_scene.robot_pose(0)[:3, 3])
-    assert np.allclose(truth[-1][0][-1], bridge_scene.robot_pose(frames - 1)[:3, 3])
+    whole = trajectory_points(rows, "truth/pose")
+    assert np.allclose(whole, [bridge_scene.robot_pose(i)[:3, 3] for i in range(frames)])
     robot = np.array(_by_stamp(rows[f"/{P.ROBOT}"], "Transform3D:translation")[-1][0])
-    fusion = np.array(_by_stamp(rows[f"/{P.trajectory_path('fusion/pose')}"], "LineStrips3D:strips")[-1][0][-1])
-    assert np.allclose(robot, fusion), "world/robot follows fusion/pose, the best estimate"
+    assert np.allclose(robot, trajectory_points(rows, "fusion/pose")[-1]), "world/robot follows fusion/pose"
+
+
+def test_long_trajectories_are_logged_in_bounded_segments(tmp_path):
+    frames = 30
+    _record(tmp_path / "seg.rrd", lambda lg: _play(lg, frames=frames, flies=50), trail_segment_points=8)
+    rows = rrd_rows(tmp_path / "seg.rrd")
+    prefix = f"/{P.trajectory_path('truth/pose')}/"
+    segments = [e for e in rows if e.startswith(prefix)]
+    assert len(segments) == 5, "30 points in segments of 8 that share their end points: 5 segments"
+    for entity in segments:
+        assert all(len(s[0]) <= 8 for s in rows[entity]["LineStrips3D:strips"])
+    whole = trajectory_points(rows, "truth/pose")
+    assert np.allclose(whole, [bridge_scene.robot_pose(i)[:3, 3] for i in range(frames)])
 
 
 def test_map_keyframes_are_transformed_into_the_map_frame(synthetic_rrd):

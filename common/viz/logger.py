@@ -7,7 +7,7 @@ the newest *sensor* stamp seen so far (they are also on Rerun's automatic ``log_
 
 Costs are kept low for a bridge that shares two cores: JPEG frames pass through undecoded, raw frames
 are JPEG-encoded once, populations and maps are subsampled, trajectories are decimated by distance and
-re-logged at a bounded rate.
+logged in segments of bounded size, the open one re-logged at a bounded rate.
 """
 from __future__ import annotations
 
@@ -33,25 +33,44 @@ SERVICE_PALETTE = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66),
 
 
 class Trail:
-    """A trajectory decimated by distance: a point is kept when it is ``min_step_m`` from the last kept
-    one; past ``max_points`` every other point is dropped (the start stays, resolution halves)."""
+    """A trajectory decimated by distance and cut into segments of at most ``segment_points`` points.
 
-    def __init__(self, min_step_m: float = 0.01, max_points: int = 20_000):
-        self.min_step_m, self.max_points = min_step_m, max_points
+    A point is kept when it is ``min_step_m`` from the last kept one. Only the open (last) segment is
+    ever re-logged, so the cost of growing a trajectory stays constant however long the run: closed
+    segments stay on screen from the time they were logged (Rerun's latest-at), and scrubbing back in
+    time shows the trajectory as it was then. Each segment starts at the previous one's last point.
+    """
+
+    def __init__(self, min_step_m: float = 0.01, segment_points: int = 200):
+        if segment_points < 2:
+            raise ValueError(f"segment_points must be at least 2, got {segment_points}")
+        self.min_step_m, self.segment_points = min_step_m, segment_points
+        self.segment = 0
         self._points: list[np.ndarray] = []
         self.last_logged_ns: int | None = None
+        self.dirty = False  # points added since the last log
 
     def add(self, p: np.ndarray) -> bool:
         """Append ``p`` if it moved far enough; returns whether it was kept."""
         if self._points and np.linalg.norm(p - self._points[-1]) < self.min_step_m:
             return False
         self._points.append(np.asarray(p, np.float64).copy())
-        if len(self._points) > self.max_points:
-            self._points = self._points[::2]
+        self.dirty = True
         return True
 
+    @property
+    def full(self) -> bool:
+        return len(self._points) >= self.segment_points
+
     def points(self) -> np.ndarray:
+        """The open segment's points."""
         return np.array(self._points).reshape(-1, 3)
+
+    def roll(self) -> None:
+        """Close the open segment; the next starts at its last point."""
+        self.segment += 1
+        self._points = self._points[-1:]
+        self.dirty = False
 
 
 def subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray | slice:
@@ -69,7 +88,7 @@ class RerunLogger:
 
     def __init__(self, rec: rr.RecordingStream, *, max_flies: int = 20_000, max_map_points: int = 100_000,
                  jpeg_quality: int = 80, trail_min_step_m: float = 0.01, trail_period_s: float = 0.2,
-                 seed: int = 0):
+                 trail_segment_points: int = 200, seed: int = 0):
         if max_flies <= 0 or max_map_points <= 0:
             raise ValueError("max_flies and max_map_points must be positive")
         if not 1 <= jpeg_quality <= 100:
@@ -77,7 +96,7 @@ class RerunLogger:
         self.rec = rec
         self.max_flies, self.max_map_points, self.jpeg_quality = max_flies, max_map_points, jpeg_quality
         self.trail_period_ns = int(trail_period_s * 1e9)
-        self._trail_min_step = trail_min_step_m
+        self._trail_min_step, self._trail_segment_points = trail_min_step_m, trail_segment_points
         self._rng = np.random.default_rng(seed)
         self.calibration_msg: m.StereoCalibrationMsg | None = None
         self._calib = None  # common.camera.StereoCalibration for projecting flies
@@ -120,7 +139,7 @@ class RerunLogger:
         self.rec.log(P.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.rec.log(P.ROBOT, rr.TransformAxes3D(0.3), static=True)
         for stream, (name, colour) in P.TRAJECTORY_STYLE.items():
-            self._trails[stream] = Trail(self._trail_min_step)
+            self._trails[stream] = Trail(self._trail_min_step, self._trail_segment_points)
         self.rec.log(f"{P.CMD}/linear_mps", rr.SeriesLines(names="linear m/s", colors=[(60, 160, 255)]), static=True)
         self.rec.log(f"{P.CMD}/angular_radps", rr.SeriesLines(names="angular rad/s", colors=[(255, 120, 60)]),
                      static=True)
@@ -217,13 +236,17 @@ class RerunLogger:
             q = msg.orientation / np.linalg.norm(msg.orientation)
             self.rec.log(P.ROBOT, rr.Transform3D(translation=msg.position, quaternion=rr.Quaternion(xyzw=q)))
         trail = self._trails[stream]
-        if trail.add(msg.position) and (trail.last_logged_ns is None
-                                        or stamp - trail.last_logged_ns >= self.trail_period_ns
-                                        or stamp < trail.last_logged_ns):
+        if not trail.add(msg.position):
+            return
+        if trail.full:
+            self.log_trail(stream, stamp)
+            trail.roll()
+        elif (trail.last_logged_ns is None or stamp - trail.last_logged_ns >= self.trail_period_ns
+              or stamp < trail.last_logged_ns):
             self.log_trail(stream, stamp)
 
     def log_trail(self, stream: str, stamp_ns: int | None = None) -> None:
-        """(Re-)log a whole trajectory as one line strip (also called on stop so the tail is not lost)."""
+        """(Re-)log the open segment of a trajectory as a line strip."""
         trail = self._trails[stream]
         pts = trail.points()
         if len(pts) < 2:
@@ -231,13 +254,16 @@ class RerunLogger:
         name, colour = P.TRAJECTORY_STYLE[stream]
         stamp = self.sensor_ns if stamp_ns is None else stamp_ns
         self._at(stamp)
-        self.rec.log(P.trajectory_path(stream), rr.LineStrips3D([pts], colors=[colour], radii=-2.5, labels=[name]))
+        self.rec.log(P.trajectory_segment_path(stream, trail.segment),
+                     rr.LineStrips3D([pts], colors=[colour], radii=-2.5, labels=[name] if trail.segment == 0 else None))
         trail.last_logged_ns = stamp
+        trail.dirty = False
 
     def finish(self) -> None:
-        """Log what was decimated away at the end (trajectory tails)."""
-        for stream in self._trails:
-            self.log_trail(stream)
+        """Log the trajectory points not yet logged (the rate limit may have held them back)."""
+        for stream, trail in self._trails.items():
+            if trail.dirty:
+                self.log_trail(stream)
 
     # -------------------------------------------------------------------------------------- map
     def fly_map(self, msg: m.FlyMap) -> None:

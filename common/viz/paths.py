@@ -50,6 +50,11 @@ def trajectory_path(stream: str) -> str:
     return f"{TRAJECTORIES}/{TRAJECTORY_STYLE[stream][0]}"
 
 
+def trajectory_segment_path(stream: str, segment: int) -> str:
+    """Trajectories are logged in segments (see common.viz.logger.Trail), one entity each."""
+    return f"{trajectory_path(stream)}/{segment:05d}"
+
+
 def service_part(name: str) -> str:
     """A service or counter name made safe as one entity-path part."""
     return rr.escape_entity_path_part(name or "unnamed")
