@@ -196,3 +196,17 @@ def test_bad_images_are_refused():
         prepare_frame(calib, left[..., :2], right[..., :2], **args)
     with pytest.raises(ImageError, match="differ"):
         prepare_frame(calib, left, right[..., 0], **args)
+
+
+def test_horizontal_stripes_carry_no_disparity_and_score_low():
+    """Texture that varies only across the epipolar lines matches at every disparity (aperture problem):
+    G, built from the x gradient, must keep such flies well below flies on real texture."""
+    calib, left, right, _ = textured_plane_pair(disparity=12)
+    stripes = np.repeat((np.arange(calib.height) % 8 < 4)[:, None] * 200 + 20, calib.width, axis=1)
+    left[:, 100:] = stripes[:, 100:, None]
+    right[:, 100 - 12:] = stripes[:, 100 - 12:, None]
+    frame = _frame(calib, left, right)
+    v = np.full(20, 60.0)
+    tex = image_fitness(frame, calib, calib.backproject(np.linspace(20, 60, 20), v, np.full(20, 12.0)))
+    stripe_any_d = image_fitness(frame, calib, calib.backproject(np.linspace(115, 140, 20), v, np.full(20, 30.0)))
+    assert stripe_any_d.max() < 0.1 * np.median(tex)
