@@ -73,7 +73,7 @@ class PseudoDistanceField:
     """
 
     def __init__(self, B, eps, weights_b=None, bounds=None, spacing=None, max_cells: int = 120_000,
-                 near_cells: float = 2.0, deconvolve: bool = True, parallel_min: int = 4096):
+                 near_cells: float = 2.0, deconvolve: bool = True, parallel_min: int = 50_000):
         self.B = as_population(B, "B")
         self.eps = check_eps(eps)
         self.parallel_min = int(parallel_min)
