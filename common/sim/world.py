@@ -91,13 +91,22 @@ class World:
             zr.append((b.z0, b.z0 + b.size[2]))
         self._footprints = np.array(fp, float).reshape(-1, 4, 2)
         self._footprint_z = np.array(zr, float).reshape(-1, 2)
+        self._segment_cache: dict[tuple[float, float], np.ndarray] = {}
 
     # ------------------------------------------------------------------------------- 2-D obstacles
     def obstacle_segments(self, z_min: float = 0.05, z_max: float = 2.0) -> np.ndarray:
         """(M, 2, 2) map-frame x-y segments of every solid vertical surface meeting the band [z_min, z_max]
-        (walls and box sides). Floors, ceilings, box tops and decals are not obstacles."""
+        (walls and box sides). Floors, ceilings, box tops and decals are not obstacles.  The array is
+        cached per band and read-only."""
         if not z_max >= z_min:
             raise ValueError(f"obstacle_segments needs z_min ≤ z_max, got {z_min}, {z_max}")
+        key = (float(z_min), float(z_max))
+        if key not in self._segment_cache:  # the world is static: compute once per band
+            self._segment_cache[key] = self._segments(*key)
+            self._segment_cache[key].flags.writeable = False
+        return self._segment_cache[key]
+
+    def _segments(self, z_min: float, z_max: float) -> np.ndarray:
         q = self.quads
         vertical = np.abs(q.normal[:, 2]) < 1e-6
         corners_z = np.stack([q.origin[:, 2], (q.origin + q.u)[:, 2], (q.origin + q.v)[:, 2],
