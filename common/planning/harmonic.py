@@ -65,67 +65,61 @@ def flood_from_target(passable, target):
 
 
 @njit(cache=True)
-def scaled_weights(s, state):
-    """Neighbour weights ``exp(s_n - s_i) / 4`` of every ACTIVE cell (0 towards BLOCKED neighbours).
-
-    Returns (H, W, 4) float64 in the order +x, -x, +y, -y."""
-    h, w = s.shape
-    wt = np.zeros((h, w, 4), dtype=np.float64)
-    for y in range(1, h - 1):
-        for x in range(1, w - 1):
-            if state[y, x] != ACTIVE:
-                continue
-            si = s[y, x]
-            if state[y, x + 1] != BLOCKED:
-                wt[y, x, 0] = 0.25 * np.exp(s[y, x + 1] - si)
-            if state[y, x - 1] != BLOCKED:
-                wt[y, x, 1] = 0.25 * np.exp(s[y, x - 1] - si)
-            if state[y + 1, x] != BLOCKED:
-                wt[y, x, 2] = 0.25 * np.exp(s[y + 1, x] - si)
-            if state[y - 1, x] != BLOCKED:
-                wt[y, x, 3] = 0.25 * np.exp(s[y - 1, x] - si)
+def scaled_weights(s, state, cells):
+    """Neighbour weights ``exp(s_n - s_i) / 4`` of the ACTIVE cells ``cells`` (flat indices), 0 towards
+    BLOCKED neighbours.  Returns (len(cells), 4) float64 in the order +x, -x, +y, -y."""
+    w = s.shape[1]
+    sf = s.ravel()
+    stf = state.ravel()
+    n = cells.size
+    wt = np.zeros((n, 4), dtype=np.float64)
+    for k in range(n):
+        i = cells[k]
+        si = sf[i]
+        if stf[i + 1] != BLOCKED:
+            wt[k, 0] = 0.25 * np.exp(sf[i + 1] - si)
+        if stf[i - 1] != BLOCKED:
+            wt[k, 1] = 0.25 * np.exp(sf[i - 1] - si)
+        if stf[i + w] != BLOCKED:
+            wt[k, 2] = 0.25 * np.exp(sf[i + w] - si)
+        if stf[i - w] != BLOCKED:
+            wt[k, 3] = 0.25 * np.exp(sf[i - w] - si)
     return wt
 
 
-@njit(cache=True)
-def _sweep(r, wt, cells, omega, order, track):
-    """One SOR pass over the flat indices ``cells`` (ACTIVE cells, row-major) forwards (order=1) or
-    backwards; returns the largest relative change when ``track`` (the division is not free)."""
-    w = r.shape[1]
-    rf = r.ravel()
-    worst = 0.0
-    n = cells.size
-    for k in range(n):
-        i = cells[k] if order > 0 else cells[n - 1 - k]
-        y = i // w
-        x = i - y * w
-        old = rf[i]
-        acc = (wt[y, x, 0] * rf[i + 1] + wt[y, x, 1] * rf[i - 1]
-               + wt[y, x, 2] * rf[i + w] + wt[y, x, 3] * rf[i - w])
-        new = old + omega * (acc - old)
-        # Over-relaxation far from convergence could overshoot below zero; phi > 0 on every connected
-        # cell, so clamp (the fixed point never touches the clamp).
-        if new < 0.05 * old:
-            new = 0.05 * old
-        rf[i] = new
-        if track:
-            c = abs(new - old) / new
-            if c > worst:
-                worst = c
-    return worst
+@njit(cache=True, inline="always")
+def _relax(rf, wt, k, i, w, omega):
+    old = rf[i]
+    acc = wt[k, 0] * rf[i + 1] + wt[k, 1] * rf[i - 1] + wt[k, 2] * rf[i + w] + wt[k, 3] * rf[i - w]
+    new = old + omega * (acc - old)
+    # Over-relaxation far from convergence could overshoot below zero; phi > 0 on every connected cell,
+    # so clamp (the fixed point never touches the clamp).
+    if new < 0.05 * old:
+        new = 0.05 * old
+    rf[i] = new
+    return old, new
 
 
 @njit(cache=True)
 def scaled_ssor(r, wt, cells, omega, n_sweeps):
     """``n_sweeps`` symmetric SOR sweeps (forward then backward) of ``r_i = sum w_in r_n`` in place over
-    the ACTIVE cells ``cells`` (flat indices, ascending).  Returns the largest relative change of any
-    cell in the last sweep."""
+    the ACTIVE cells ``cells`` (flat indices, ascending; ``wt`` from ``scaled_weights``).  Returns the
+    largest relative change of any cell in the last sweep."""
+    w = r.shape[1]
+    rf = r.ravel()
+    n = cells.size
+    for _ in range(n_sweeps - 1):
+        for k in range(n):
+            _relax(rf, wt, k, cells[k], w, omega)
+        for k in range(n - 1, -1, -1):
+            _relax(rf, wt, k, cells[k], w, omega)
     worst = 0.0
-    for k in range(n_sweeps):
-        last = k == n_sweeps - 1
-        a = _sweep(r, wt, cells, omega, 1, last)
-        b = _sweep(r, wt, cells, omega, -1, last)
-        worst = max(a, b)
+    for k in range(n):
+        old, new = _relax(rf, wt, k, cells[k], w, omega)
+        worst = max(worst, abs(new - old) / new)
+    for k in range(n - 1, -1, -1):
+        old, new = _relax(rf, wt, k, cells[k], w, omega)
+        worst = max(worst, abs(new - old) / new)
     return worst
 
 

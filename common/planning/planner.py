@@ -137,7 +137,7 @@ class HarmonicPlanner:
         self._r = np.where(new_state != hk.BLOCKED, 1.0, 0.0)
         self._state = new_state
         self._cells = np.flatnonzero(active.ravel())
-        self._weights = hk.scaled_weights(self._s, self._state)
+        self._weights = hk.scaled_weights(self._s, self._state, self._cells)
         self._status = "ok"
         self._has_solution = True
 
@@ -145,13 +145,14 @@ class HarmonicPlanner:
         act = self._state == hk.ACTIVE
         self._s[act] += np.log(self._r[act])
         self._r[act] = 1.0
-        self._weights = hk.scaled_weights(self._s, self._state)
+        self._weights = hk.scaled_weights(self._s, self._state, self._cells)
 
-    def solve(self, max_ms: float | None = None) -> SolveReport:
+    def solve(self, max_ms: float | None = None, max_sweeps: int | None = None) -> SolveReport:
         """Bring the field up to date: rebuild obstacles if the evidence or target changed, then relax
         (symmetric SOR in the scaled log domain) from the previous solution until the largest relative
         change per sweep is below ``tolerance``, ``max_sweeps`` ran, or ``max_ms`` elapsed (checked every
-        ``sweeps_per_check`` sweeps; the next call continues where this one stopped)."""
+        ``sweeps_per_check`` sweeps; the next call continues where this one stopped).  ``max_sweeps``
+        overrides the configured cap for this call (a reproducible budget, unlike ``max_ms``)."""
         t0 = time.perf_counter()
         if self._target is None:
             self._status = "no target"
@@ -165,8 +166,9 @@ class HarmonicPlanner:
             return SolveReport(0, False, float("nan"), (time.perf_counter() - t0) * 1e3, 0, self._status)
         sweeps, change = 0, float("inf")
         cfg = self.cfg
-        while sweeps < cfg.max_sweeps:
-            n = min(cfg.sweeps_per_check, cfg.max_sweeps - sweeps)
+        cap = cfg.max_sweeps if max_sweeps is None else int(max_sweeps)
+        while sweeps < cap:
+            n = min(cfg.sweeps_per_check, cap - sweeps)
             change = hk.scaled_ssor(self._r, self._weights, self._cells, cfg.sor_omega, n)
             sweeps += n
             if change < cfg.tolerance:
