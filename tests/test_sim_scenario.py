@@ -4,7 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.sim import ScenarioError, World, load_scenario, parse_scenario, scenario_path
+from common.sim import ScenarioError, Simulator, World, load_scenario, parse_scenario, scenario_path
 from common.sim.scenario import SCENARIO_DIR
 
 SHIPPED = sorted(SCENARIO_DIR.glob("*.toml"))
@@ -118,3 +118,29 @@ def test_named_bare_and_inline_textures():
     assert posters[0].texture != posters[1].texture  # every bare poster gets its own seed
     assert scn.boxes[0].texture.color == (200, 0, 0)
     assert scn.boxes[1].texture.seed == 4
+
+
+def _render(name, t=1.0, w=160, h=120, noise=True):
+    scn = load_scenario(scenario_path(name))
+    if not noise:
+        scn.camera.read_noise = scn.camera.shot_noise = 0.0
+    sim = Simulator(scn, seed=0, width=w, height=h)
+    sim.advance(t)
+    return sim.render()
+
+
+def test_deep_scene_spans_near_and_far_depths_and_sky():
+    d = _render("deep").depth
+    finite = d[np.isfinite(d)]
+    assert np.isinf(d).mean() > 0.1                      # sky
+    assert finite.min() < 3.0 and np.percentile(finite, 99) > 25.0
+
+
+def test_poor_texture_corridor_has_much_less_image_texture_than_the_default():
+    def textured_fraction(img):  # pixels with a horizontal step of more than 2 grey levels
+        g = img.astype(float).mean(axis=2)
+        return np.mean(np.abs(np.diff(g, axis=1)) > 2)
+    rich = _render("corridor", t=3.0, w=320, h=240, noise=False).left
+    poor = _render("corridor_poor_texture", t=3.0, w=320, h=240, noise=False).left
+    assert textured_fraction(rich) > 0.1
+    assert textured_fraction(poor) < 0.3 * textured_fraction(rich)
