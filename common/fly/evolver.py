@@ -31,13 +31,12 @@ import numpy as np
 from common.camera import StereoCalibration
 from common.fly.config import EvolverConfig
 from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
-from common.fly.operators import (SharingGrid, backproject_uvd, crossover2, crossover3, mutate,
-                                  project_uvd)
+from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
+                                  camera_vector, insert_offspring, make_offspring, project_uvd)
 from common.fly.sampling import disparity_bounds, sample_flies
 
 FitnessTerm = Callable[[np.ndarray], np.ndarray]
 
-_MUTATION, _CROSS2, _CROSS3, _IMMIGRANT, _EXCHANGE = 0, 1, 2, 3, 4
 _MATE_REACH = 4
 _NOISE_REFRESH_FRAMES = 30
 _STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure  # crossover mates are within this many places in the cell-ordered population
@@ -68,6 +67,7 @@ class FlyEvolver:
         cell = config.sharing_radius_px or float(np.sqrt(calib.width * calib.height / config.population))
         self.sharing = SharingGrid(calib.width, calib.height, cell, config.sharing_strength)
         self._terms: dict[str, tuple[FitnessTerm, float]] = {}
+        self._cam = camera_vector(calib)
         self._frame: PreparedFrame | None = None
         self._noise_sigma: float | None = None
         self._frames_since_noise = 0
@@ -207,9 +207,10 @@ class FlyEvolver:
 
     def _operators(self, m: int) -> np.ndarray:
         c = self.config
-        p = np.array([1 - c.crossover2_rate - c.crossover3_rate - c.immigration_rate - c.exchange_rate,
-                      c.crossover2_rate, c.crossover3_rate, c.immigration_rate, c.exchange_rate])
-        p = np.clip(p, 0, 1)
+        p = np.zeros(5)
+        p[[CROSSOVER2, CROSSOVER3, IMMIGRANT, EXCHANGE]] = (c.crossover2_rate, c.crossover3_rate,
+                                                            c.immigration_rate, c.exchange_rate)
+        p[MUTATION] = max(0.0, 1.0 - p.sum())
         return self.rng.choice(5, size=m, p=p / p.sum())
 
     def _select_parents(self, shared: np.ndarray, m: int) -> np.ndarray:
@@ -228,42 +229,19 @@ class FlyEvolver:
         mate = parents + off
         return np.where((mate < 0) | (mate >= n), parents - off, mate)
 
-    def _make_offspring(self, parents: np.ndarray, ops: np.ndarray):
-        """Children positions and disparity steps for the given parents and operators."""
+    def _make_offspring(self, parents: np.ndarray, ops: np.ndarray, parent_sigma: np.ndarray):
+        """Children positions and disparity steps (one numba loop over the batch, see operators)."""
         c, rng = self.config, self.rng
         m = len(parents)
+        n_imm = int(np.count_nonzero(ops == IMMIGRANT))
+        immigrants = (sample_flies(self.calib, n_imm, c.depth_min, c.depth_max, rng, self._margin) if n_imm
+                      else np.zeros((0, 3), np.float32))
         child = np.empty((m, 3), np.float32)
-        sigma = self._sigma_d[parents].copy()
-        mut = ops == _MUTATION
-        if c.adaptive_mutation and c.mode == "generational":
-            # Log-normal self-adaptation: a mutated child carries its own step, selection keeps good ones.
-            sigma[mut] *= np.exp(np.float32(0.6) * rng.standard_normal(int(mut.sum()), dtype=np.float32))
-            np.clip(sigma, c.mutation_sigma_disparity_min, self._sigma_max, out=sigma)
-        if mut.any():
-            child[mut] = mutate(self.calib, self._pos[parents[mut]], c.mutation_sigma_px, sigma[mut],
-                                self._d_range, rng)
-        for op in (_CROSS2, _CROSS3):
-            sel = ops == op
-            if not sel.any():
-                continue
-            p1 = parents[sel]
-            m1 = self._mates(p1)
-            if op == _CROSS2:
-                child[sel] = crossover2(self._pos[p1], self._pos[m1], rng)
-            else:
-                child[sel] = crossover3(self._pos[p1], self._pos[m1], self._pos[self._mates(p1)], rng)
-        exc = ops == _EXCHANGE
-        if exc.any():
-            p1 = parents[exc]
-            u, v, _ = project_uvd(self.calib, self._pos[p1])
-            _, _, d = project_uvd(self.calib, self._pos[self._mates(p1)])
-            d = d + rng.standard_normal(len(d), dtype=np.float32) * np.float32(c.mutation_sigma_disparity_min)
-            child[exc] = backproject_uvd(self.calib, u, v, np.clip(d, *self._d_range))
-        imm = ops == _IMMIGRANT
-        if imm.any():
-            child[imm] = sample_flies(self.calib, int(imm.sum()), c.depth_min, c.depth_max, rng,
-                                      self._margin)
-            sigma[imm] = c.mutation_sigma_disparity
+        sigma = np.empty(m, np.float32)
+        make_offspring(ops, parents, self._mates(parents), self._mates(parents), self._pos, parent_sigma,
+                       rng.standard_normal((m, 3)), rng.random((m, 3)), immigrants, self._cam,
+                       float(c.mutation_sigma_px), float(self._d_range[0]), float(self._d_range[1]),
+                       float(c.mutation_sigma_disparity_min), float(c.mutation_sigma_disparity), child, sigma)
         return child, sigma
 
     def _steady_generation(self) -> None:
@@ -279,47 +257,33 @@ class FlyEvolver:
             # Parents in population (cell) order: children land near them, so the batch is evaluated in
             # image order too (cache-friendly); the operators are iid, so pairing stays random.
             parents = np.sort(self._select_parents(shared, m))
-            child, sigma = self._make_offspring(parents, ops)
+            child, sigma = self._make_offspring(parents, ops, self._sigma_d[parents])
             fit = self.evaluate(child)
-            # Victims: the parent for mutated children (crowding), else the loser of a reverse tournament.
-            cand = rng.integers(0, n, (m, max(2, c.tournament_size)))
-            victims = cand[np.arange(m), np.argmin(shared[cand], axis=1)]
-            if c.crowding:
-                victims = np.where((ops == _MUTATION) | (ops == _EXCHANGE), parents, victims)
-            u, v, _ = project_uvd(self.calib, child)
-            cells = self.sharing.cells(u, v)
-            child_shared = SharingGrid.apply(
-                fit, self.sharing.factor(cells, extra=(cells != self._cells[victims]).astype(np.int64)))
-            accept = (child_shared >= shared[victims]) | (ops == _IMMIGRANT)
-            accept &= np.isfinite(fit) | (ops == _IMMIGRANT)
-            if c.adaptive_mutation and c.crowding:
-                # Per-fly success rule: a mutation that beats its parent widens the step (×1.5), one that
-                # fails narrows the parent's (×0.85) — equilibrium near a 30 % success rate, so converged
-                # flies refine their depth finely while flies still searching keep large steps.
-                mut = ops == _MUTATION
-                sigma = np.where(mut & accept, sigma * np.float32(_STEP_UP), sigma)
-                failed = parents[mut & ~accept]
-                self._sigma_d[failed] *= np.float32(_STEP_DOWN)
-                np.clip(sigma, c.mutation_sigma_disparity_min, self._sigma_max, out=sigma)
-                np.clip(self._sigma_d, c.mutation_sigma_disparity_min, self._sigma_max, out=self._sigma_d)
-            v_acc = victims[accept]
-            self._pos[v_acc] = child[accept]
-            self._fit[v_acc] = fit[accept]
-            self._sigma_d[v_acc] = sigma[accept]
-            self._cells[v_acc] = cells[accept]
-            self.sharing.update(self._cells)
+            g = self.sharing
+            insert_offspring(ops, parents, rng.integers(0, n, (m, max(2, c.tournament_size))), child, sigma,
+                             fit, self._pos, self._fit, self._sigma_d, self._cells, g.counts,
+                             float(g.expected), float(g.strength), float(g.cell), g.cols, g.rows, self._cam,
+                             bool(c.crowding), bool(c.adaptive_mutation), _STEP_UP, _STEP_DOWN,
+                             float(c.mutation_sigma_disparity_min), float(self._sigma_max))
         self._reorder()
 
     def _generational_generation(self) -> None:
-        c = self.config
+        c, rng = self.config, self.rng
         n = len(self._pos)
         shared = self.shared_fitness()
         n_elite = int(round(c.elite_fraction * n)) if c.selection == "elitist" else 0
         elite = np.argpartition(-shared, n_elite - 1)[:n_elite] if n_elite else np.zeros(0, np.int64)
         m = n - n_elite
         ops = self._operators(m)
-        parents = self._select_parents(shared, m)
-        child, sigma = self._make_offspring(parents, ops)
+        parents = np.sort(self._select_parents(shared, m))
+        sigma = self._sigma_d[parents]
+        if c.adaptive_mutation:
+            # Log-normal self-adaptation: a mutated child carries its own step, selection keeps good ones.
+            mut = ops == MUTATION
+            sigma = sigma.copy()
+            sigma[mut] *= np.exp(0.6 * rng.standard_normal(int(mut.sum()))).astype(np.float32)
+            np.clip(sigma, c.mutation_sigma_disparity_min, self._sigma_max, out=sigma)
+        child, sigma = self._make_offspring(parents, ops, sigma)
         fit = self.evaluate(child)
         self._pos = np.concatenate([self._pos[elite], child])
         self._fit = np.concatenate([self._fit[elite], fit])

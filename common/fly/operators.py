@@ -1,13 +1,25 @@
-"""Genetic operators and 2-D sharing of the Fly algorithm, vectorised over whole batches of flies.
+"""Genetic operators and 2-D sharing of the Fly algorithm.
 
 Flies are 3-D points, but mutation works in (u_left, v, disparity) — the coordinates in which stereo
 uncertainty is isotropic-ish — so that a Gaussian step has the same meaning near and far.
+
+All operators are one numba loop, ``make_offspring``, driven by random numbers drawn by the caller's numpy
+Generator (so a seeded evolver is reproducible).  The small public wrappers (``mutate``, ``crossover2``,
+``crossover3``, ``exchange_depth``) call that same loop, so what the tests check is what the evolver runs.
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from common.camera import StereoCalibration
+
+MUTATION, CROSSOVER2, CROSSOVER3, IMMIGRANT, EXCHANGE = 0, 1, 2, 3, 4
+
+
+def camera_vector(calib: StereoCalibration) -> np.ndarray:
+    """(fx, fy, cx_left, cy, fx·baseline, doffs) as float64, the projection constants the kernels need."""
+    return np.array([calib.fx, calib.fy, calib.cx_left, calib.cy, calib.fx * calib.baseline, calib.doffs])
 
 
 def project_uvd(calib: StereoCalibration, positions: np.ndarray):
@@ -31,31 +43,197 @@ def backproject_uvd(calib: StereoCalibration, u, v, d) -> np.ndarray:
     return np.stack([x, y, z], axis=1).astype(np.float32, copy=False)
 
 
+@numba.njit(cache=True)
+def _uvd(x, y, z, cam):
+    iz = 1.0 / z
+    return cam[0] * x * iz + cam[2], cam[1] * y * iz + cam[3], cam[4] * iz - cam[5]
+
+
+@numba.njit(cache=True)
+def _to_point(u, v, d, cam, out, i):
+    z = cam[4] / (d + cam[5])
+    out[i, 0] = (u - cam[2]) * z / cam[0]
+    out[i, 1] = (v - cam[3]) * z / cam[1]
+    out[i, 2] = z
+
+
+@numba.njit(cache=True)
+def make_offspring(ops, parents, mates1, mates2, pos, parent_sigma, normals, unif, immigrants, cam,
+                   sigma_px, d_lo, d_hi, exchange_sigma, immigrant_sigma, out_child, out_sigma):
+    """One child per entry of ``ops`` (operator codes above).
+
+    * MUTATION: parent's (u, v) + N(0, sigma_px²) each, disparity + N(0, parent_sigma²), clipped to
+      [d_lo, d_hi];
+    * EXCHANGE: parent's pixel with mate 1's disparity (+ N(0, exchange_sigma²)) — uniform crossover of
+      the (u, v | d) genes, which spreads a found surface along the image;
+    * CROSSOVER2: λ·parent + (1−λ)·mate1, λ = unif[:, 0] — on the parents' segment;
+    * CROSSOVER3: barycentric weights uniform on the simplex (normalised exponentials of unif) — in the
+      parents' triangle, hence their plane;
+    * IMMIGRANT: the next row of ``immigrants`` (drawn like the initialisation).
+    normals: (m, 3) standard normals; unif: (m, 3) uniforms in [0, 1).
+    """
+    k = 0
+    for i in range(ops.shape[0]):
+        p = parents[i]
+        op = ops[i]
+        out_sigma[i] = parent_sigma[i]
+        if op == MUTATION or op == EXCHANGE:
+            u, v, d = _uvd(pos[p, 0], pos[p, 1], pos[p, 2], cam)
+            if op == MUTATION:
+                u += normals[i, 0] * sigma_px
+                v += normals[i, 1] * sigma_px
+                d += normals[i, 2] * parent_sigma[i]
+            else:
+                m = mates1[i]
+                _, _, d = _uvd(pos[m, 0], pos[m, 1], pos[m, 2], cam)
+                d += normals[i, 2] * exchange_sigma
+            d = min(max(d, d_lo), d_hi)
+            _to_point(u, v, d, cam, out_child, i)
+        elif op == CROSSOVER2:
+            lam = unif[i, 0]
+            m = mates1[i]
+            for a in range(3):
+                out_child[i, a] = lam * pos[p, a] + (1.0 - lam) * pos[m, a]
+        elif op == CROSSOVER3:
+            e0 = -np.log(1.0 - unif[i, 0])
+            e1 = -np.log(1.0 - unif[i, 1])
+            e2 = -np.log(1.0 - unif[i, 2])
+            s = e0 + e1 + e2
+            if not s > 0.0:
+                e0, e1, e2, s = 1.0, 1.0, 1.0, 3.0
+            m1 = mates1[i]
+            m2 = mates2[i]
+            for a in range(3):
+                out_child[i, a] = (e0 * pos[p, a] + e1 * pos[m1, a] + e2 * pos[m2, a]) / s
+        else:  # IMMIGRANT
+            for a in range(3):
+                out_child[i, a] = immigrants[k, a]
+            k += 1
+            out_sigma[i] = immigrant_sigma
+
+
+def _run(ops, pos, parents, mates1, mates2, parent_sigma, rng, calib=None, sigma_px=0.0,
+         d_range=(-1e9, 1e9), exchange_sigma=0.0):
+    m = len(ops)
+    child = np.empty((m, 3), np.float32)
+    sigma = np.empty(m, np.float32)
+    cam = camera_vector(calib) if calib is not None else np.ones(6)
+    make_offspring(np.asarray(ops, np.int64), parents, mates1, mates2, np.ascontiguousarray(pos, np.float32),
+                   np.asarray(parent_sigma, np.float32), rng.standard_normal((m, 3)), rng.random((m, 3)),
+                   np.zeros((0, 3), np.float32), cam, float(sigma_px), float(d_range[0]), float(d_range[1]),
+                   float(exchange_sigma), 0.0, child, sigma)
+    return child
+
+
 def mutate(calib: StereoCalibration, positions: np.ndarray, sigma_px: float, sigma_d: np.ndarray,
            d_range: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
-    """Gaussian mutation: left pixel moves by N(0, sigma_px²) per axis, disparity by N(0, sigma_d²)
-    (per fly), disparity clipped to ``d_range``.  Returns new (N, 3) float32 points."""
-    u, v, d = project_uvd(calib, positions)
-    n = len(u)
-    u = u + rng.standard_normal(n, dtype=np.float32) * np.float32(sigma_px)
-    v = v + rng.standard_normal(n, dtype=np.float32) * np.float32(sigma_px)
-    d = d + rng.standard_normal(n, dtype=np.float32) * np.asarray(sigma_d, np.float32)
-    d = np.clip(d, d_range[0], d_range[1])
-    return backproject_uvd(calib, u, v, d)
+    """Gaussian mutation of each point: left pixel ± N(0, sigma_px²) per axis, disparity ± N(0, sigma_d²)
+    (per point), disparity clipped to ``d_range``.  Returns new (N, 3) float32 points."""
+    n = len(positions)
+    idx = np.arange(n)
+    return _run(np.full(n, MUTATION), positions, idx, idx, idx, np.broadcast_to(sigma_d, (n,)), rng, calib,
+                sigma_px, d_range)
+
+
+def exchange_depth(calib: StereoCalibration, parents: np.ndarray, mates: np.ndarray, rng: np.random.Generator,
+                   sigma: float = 0.0) -> np.ndarray:
+    """Children at each parent's left pixel with the corresponding mate's disparity (+ N(0, sigma²))."""
+    n = len(parents)
+    pos = np.concatenate([parents, mates]).astype(np.float32)
+    idx = np.arange(n)
+    return _run(np.full(n, EXCHANGE), pos, idx, idx + n, idx + n, np.zeros(n), rng, calib, 0.0,
+                exchange_sigma=sigma)
 
 
 def crossover2(p1: np.ndarray, p2: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Barycentric 2-parent crossover: λ·p1 + (1 − λ)·p2, λ ~ U(0, 1) — children on the parents' segment
     (so a population on a straight edge fills it in)."""
-    lam = rng.random((len(p1), 1), dtype=np.float32)
-    return (lam * p1 + (1 - lam) * p2).astype(np.float32, copy=False)
+    n = len(p1)
+    idx = np.arange(n)
+    return _run(np.full(n, CROSSOVER2), np.concatenate([p1, p2]), idx, idx + n, idx + n, np.zeros(n), rng)
 
 
 def crossover3(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Barycentric 3-parent crossover with weights uniform on the simplex — children in the parents'
     triangle, hence in their plane (a population on a planar surface fills it in)."""
-    w = rng.dirichlet((1.0, 1.0, 1.0), len(p1)).astype(np.float32)
-    return (w[:, :1] * p1 + w[:, 1:2] * p2 + w[:, 2:] * p3).astype(np.float32, copy=False)
+    n = len(p1)
+    idx = np.arange(n)
+    return _run(np.full(n, CROSSOVER3), np.concatenate([p1, p2, p3]), idx, idx + n, idx + 2 * n, np.zeros(n),
+                rng)
+
+
+@numba.njit(cache=True)
+def _shared(f, count, expected, strength):
+    factor = 1.0 + strength * max(0.0, count / expected - 1.0)
+    return f / factor if f > 0 else f * factor
+
+
+@numba.njit(cache=True)
+def insert_offspring(ops, parents, candidates, child, child_sigma, child_fit, pos, fit, sigma_d, cells,
+                     counts, expected, strength, cell_px, cols, rows, cam, crowding, adaptive, step_up,
+                     step_down, sigma_min, sigma_max):
+    """Steady-state insertion, one child at a time (sharing counts kept exact as flies move).
+
+    The victim is the parent for mutation and exchange children when ``crowding`` (deterministic
+    crowding), else the worst (by shared fitness) of that row of ``candidates`` (reverse tournament).
+    A child replaces its victim when its shared fitness is at least the victim's; immigrants always do.
+    With ``adaptive``, a mutation that wins multiplies its step by ``step_up`` and one that loses
+    multiplies its parent's by ``step_down`` (a per-fly success rule).  Returns the number inserted.
+    """
+    inserted = 0
+    for i in range(ops.shape[0]):
+        op = ops[i]
+        x, y, z = child[i, 0], child[i, 1], child[i, 2]
+        cc = -1
+        if z > 0:
+            u, v, _ = _uvd(x, y, z, cam)
+            cu = np.floor(u / cell_px)
+            cv = np.floor(v / cell_px)
+            if 0 <= cu < cols and 0 <= cv < rows:
+                cc = int(cv) * cols + int(cu)
+        local = crowding and (op == MUTATION or op == EXCHANGE)
+        if local:
+            victim = parents[i]
+        else:
+            victim = candidates[i, 0]
+            best = np.inf
+            for j in range(candidates.shape[1]):
+                c = candidates[i, j]
+                s = _shared(fit[c], counts[cells[c]] if cells[c] >= 0 else 0, expected, strength)
+                if s < best:
+                    best = s
+                    victim = c
+        fc = child_fit[i]
+        vc = cells[victim]
+        if op == IMMIGRANT:
+            accept = True
+        elif not np.isfinite(fc):
+            accept = False
+        else:
+            extra = 1 if cc != vc else 0
+            cs = _shared(fc, counts[cc] + extra if cc >= 0 else 0, expected, strength)
+            vs = _shared(fit[victim], counts[vc] if vc >= 0 else 0, expected, strength)
+            accept = cs >= vs
+        s_new = child_sigma[i]
+        if adaptive and local and op == MUTATION:
+            if accept:
+                s_new = min(s_new * step_up, sigma_max)
+            else:
+                p = parents[i]
+                sigma_d[p] = max(sigma_d[p] * step_down, sigma_min)
+        if accept:
+            if vc >= 0:
+                counts[vc] -= 1
+            if cc >= 0:
+                counts[cc] += 1
+            pos[victim, 0] = x
+            pos[victim, 1] = y
+            pos[victim, 2] = z
+            fit[victim] = fc
+            sigma_d[victim] = s_new
+            cells[victim] = cc
+            inserted += 1
+    return inserted
 
 
 class SharingGrid:
@@ -78,16 +256,17 @@ class SharingGrid:
 
     def cells(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Cell index per fly; −1 for flies outside the image (or NaN)."""
-        cu = np.floor(np.asarray(u, np.float64) / self.cell)
-        cv = np.floor(np.asarray(v, np.float64) / self.cell)
-        ok = (cu >= 0) & (cu < self.cols) & (cv >= 0) & (cv < self.rows)
+        with np.errstate(invalid="ignore"):
+            cu = np.floor(np.asarray(u, np.float64) / self.cell)
+            cv = np.floor(np.asarray(v, np.float64) / self.cell)
+            ok = (cu >= 0) & (cu < self.cols) & (cv >= 0) & (cv < self.rows)
         idx = np.full(len(cu), -1, np.int64)
         idx[ok] = cv[ok].astype(np.int64) * self.cols + cu[ok].astype(np.int64)
         return idx
 
     def update(self, cells: np.ndarray) -> None:
         inside = cells[cells >= 0]
-        self.counts = np.bincount(inside, minlength=self.cols * self.rows)
+        self.counts = np.bincount(inside, minlength=self.cols * self.rows).astype(np.int64)
         self.expected = max(len(inside) / (self.cols * self.rows), 1e-9)
 
     def factor(self, cells: np.ndarray, extra: np.ndarray | int = 0) -> np.ndarray:
