@@ -5,7 +5,8 @@ from scipy import stats
 
 from common.camera import StereoCalibration
 from common.fly.fitness import OUTSIDE_FITNESS, ImageError, image_fitness, prepare_frame
-from common.fly.operators import SharingGrid, backproject_uvd, crossover2, crossover3, mutate, project_uvd
+from common.fly.operators import (SharingGrid, backproject_uvd, crossover2, crossover3, exchange_depth, mutate,
+                                  project_uvd)
 from common.fly.sampling import SamplingError, sample_flies
 from tests.fly_synthetic import textured_plane_pair
 
@@ -70,6 +71,19 @@ def test_mutation_respects_disparity_range(calib):
     kids = mutate(calib, pts, 0.0, np.full(5000, 50.0, np.float32), (8.0, 12.0), np.random.default_rng(5))
     _, _, d = project_uvd(calib, kids)
     assert d.min() >= 8.0 - 1e-3 and d.max() <= 12.0 + 1e-3
+
+
+def test_depth_exchange_keeps_the_pixel_and_takes_the_mates_disparity(calib):
+    rng = np.random.default_rng(8)
+    parents = sample_flies(calib, 500, 0.5, 10.0, rng)
+    mates = sample_flies(calib, 500, 0.5, 10.0, rng)
+    kids = exchange_depth(calib, parents, mates, rng)
+    uk, vk, dk = project_uvd(calib, kids)
+    up, vp, _ = project_uvd(calib, parents)
+    _, _, dm = project_uvd(calib, mates)
+    np.testing.assert_allclose(uk, up, atol=1e-3)
+    np.testing.assert_allclose(vk, vp, atol=1e-3)
+    np.testing.assert_allclose(dk, dm, rtol=1e-4, atol=1e-3)
 
 
 def test_two_parent_crossover_child_lies_between_parents():
