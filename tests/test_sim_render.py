@@ -125,3 +125,23 @@ def test_motion_blur_smears_along_the_motion_only_when_enabled():
     grad = lambda img: np.abs(np.diff(img.astype(float).mean(axis=2), axis=1)).mean()
     assert grad(b.left) < 0.8 * grad(a.left)
     np.testing.assert_array_equal(a.depth, b.depth)
+
+
+def test_sgbm_on_the_rendered_corridor_agrees_with_the_ground_truth_depth():
+    # End-to-end consistency of left, right and depth over a whole realistic frame (floor, walls at
+    # grazing angles, boxes, decals): what the Fly algorithm's evaluation depends on.
+    from common.sim import load_scenario, scenario_path
+    sim = Simulator(load_scenario(scenario_path("corridor")), seed=0, width=320, height=240)
+    sim.advance(3.0)
+    f = sim.render()
+    gt = sim.calibration.disparity_from_depth(f.depth)
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=7, P1=8 * 49, P2=32 * 49,
+                                 uniquenessRatio=10, mode=cv2.STEREO_SGBM_MODE_HH)
+    d = sgbm.compute(cv2.cvtColor(f.left, cv2.COLOR_RGB2GRAY),
+                     cv2.cvtColor(f.right, cv2.COLOR_RGB2GRAY)).astype(np.float32) / 16
+    valid = (d > 0) & np.isfinite(gt)
+    valid[:, :70] = False  # no match possible left of the disparity search range
+    err = np.abs(d - gt)[valid]
+    assert valid.mean() > 0.5
+    assert np.mean(err < 1.0) > 0.8
+    assert np.median(err) < 0.5
