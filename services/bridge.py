@@ -143,6 +143,9 @@ class Inbox:
         except queue.Full:
             self._node.counters.add("inbox_dropped")
 
+    def size(self) -> int:
+        return self._q.qsize()
+
     def drain(self):
         while True:
             try:
@@ -204,6 +207,7 @@ def body(node, args) -> int:
         while True:
             t0 = time.monotonic()
             last_round = node.stopping  # one more round after the stop request drains what arrived
+            node.rates["inbox_backlog"] = float(inbox.size())
             batch = list(inbox.drain())
             batch += [(stream, msg) for stream, sub in latest.items() if (msg := sub.take()) is not None]
             for stream, msg in batch:
