@@ -8,7 +8,7 @@ Figures (no pass/fail; noisy on a shared machine):
   normaliser, same sub-pixel sampling) on the same flies, same run; the two are checked to agree;
 - generations_per_s: steady state, 5,000 flies on the Middlebury motorcycle pair.  In steady-state mode a
   generation is N = population-size offspring, each made, evaluated and inserted (or rejected) — made in
-  vectorised batches of N/2;
+  one batch: parents drawn for all N, children made and evaluated together, then inserted one by one;
 - sgbm_time_s: cv2.StereoSGBM (3-way, 64 disparities ⊇ the pair's 7–60 px) on the motorcycle pair;
 - inliers_at_sgbm_time, inliers_at_1s, time_to_90pct_inliers_s: the shared accuracy measure
   (common.fly.metrics) from random initialisation; the clock starts before set_images (per-frame

@@ -40,7 +40,7 @@ class EvolverConfig:
     # Steady state: a mutated child competes with its parent (deterministic crowding) — keeps every fly
     # in its own image niche; other children replace the loser of a reverse tournament.
     crowding: bool = True
-    batch_fraction: float = 0.5       # steady state: offspring made per vectorised batch, as a fraction of N
+    batch_fraction: float = 1.0       # steady state: offspring made per vectorised batch, as a fraction of N
     # 2-D sharing over a grid of cells in the left image.
     sharing_radius_px: float | None = None   # cell size; None = sqrt(W·H / population)
     sharing_strength: float = 1.0            # 0 disables sharing
