@@ -43,15 +43,25 @@ def test_sonar_term_on_a_synthetic_wall():
     aside = np.c_[rng.uniform(-1.0, 1.0, n), rng.choice([-1.0, 1.0], n) * rng.uniform(0.8, 1.5, n),
                   np.full(n, HEIGHT)]
     pts = np.vstack([before, on_wall, above, aside])
-    term = SonarTerm(SonarTermConfig(height_m=HEIGHT))
+    term = SonarTerm(SonarTermConfig(height_m=HEIGHT, reward_gain=1.0))
     assert np.all(term(in_camera(pts)) == 0.0), "no scan yet: no effect"
     term.update(ring_scan(), T_BASE_CAMERA)
     fit = term(in_camera(pts))
     assert fit.shape == (4 * n,) and fit.dtype == np.float32
     f_before, f_wall, f_above, f_aside = np.split(fit, 4)
-    assert np.all(f_before <= -0.99), "free space nearer than the echo is penalised"
+    assert np.all(f_before <= -0.5), "free space nearer than the echo is penalised"
+    nearer = np.argsort(np.linalg.norm(before - [RING, 0.0, HEIGHT], axis=1))
+    assert np.all(np.diff(f_before[nearer]) >= -1e-6), "... the more, the nearer (a slope out of free space)"
     assert np.all(f_wall >= 0.95), "flies at the echo range are rewarded"
     assert np.all(f_above == 0.0) and np.all(f_aside == 0.0), "flies outside the beams are unaffected"
+    # By default only the free-space penalty acts (see the module docstring for why).
+    default = sonar_fitness(in_camera(pts), T_BASE_CAMERA, ring_scan(), SonarTermConfig(height_m=HEIGHT))
+    np.testing.assert_array_equal(default[:n], f_before)
+    assert np.all(default[n:] == 0.0)
+    # The floor inside the cone is not free space: it never echoes at grazing incidence.
+    floor = in_camera([[1.0, 0.0, 0.02]])
+    assert sonar_fitness(floor, T_BASE_CAMERA, ring_scan(), SonarTermConfig(height_m=HEIGHT,
+                                                                            vertical_half_angle_rad=0.3))[0] == 0.0
     mask = in_echo_beams(in_camera(pts), T_BASE_CAMERA, ring_scan(), SonarTermConfig(height_m=HEIGHT))
     assert mask[:2 * n].all() and not mask[2 * n:].any()
     # Behind the wall (possibly occluded) nothing is said either.
@@ -62,8 +72,9 @@ def test_sonar_term_on_a_synthetic_wall():
 def test_sonar_term_matches_its_functional_form_and_rejects_bad_input():
     pts = in_camera([[1.0, 0.0, HEIGHT], [WALL_X, 0.0, HEIGHT]])
     scan = ring_scan()
-    np.testing.assert_array_equal(sonar_fitness(pts, T_BASE_CAMERA, scan, SonarTermConfig(height_m=HEIGHT)),
-                                  [-1.0, 1.0])
+    cfg = SonarTermConfig(height_m=HEIGHT, reward_gain=1.0)
+    np.testing.assert_allclose(sonar_fitness(pts, T_BASE_CAMERA, scan, cfg), [-(0.5 + 0.5 * (1.8 - 0.8) / 1.8), 1.0],
+                               rtol=1e-5)
     with pytest.raises(ValueError, match="positions must be"):
         sonar_fitness(pts[:, :2], T_BASE_CAMERA, scan)
     with pytest.raises(SonarScanError, match="base_link"):
@@ -71,7 +82,7 @@ def test_sonar_term_matches_its_functional_form_and_rejects_bad_input():
     # "No echo" is only read as free space when asked: a fly ahead-left in the 60° beam.
     left = in_camera([[0.8 * np.cos(np.pi / 3), 0.2 + 0.8 * np.sin(np.pi / 3), HEIGHT]])
     assert sonar_fitness(left, T_BASE_CAMERA, scan)[0] == 0.0
-    assert sonar_fitness(left, T_BASE_CAMERA, scan, SonarTermConfig(no_echo_is_free=True))[0] == -1.0
+    assert sonar_fitness(left, T_BASE_CAMERA, scan, SonarTermConfig(no_echo_is_free=True))[0] < -0.5
 
 
 def test_sonar_term_plugs_into_the_evolver():
@@ -82,7 +93,7 @@ def test_sonar_term_plugs_into_the_evolver():
     calib = StereoCalibration.ideal(calib.width, calib.height, baseline=calib.baseline, T_base_camera=T_BASE_CAMERA)
     ev = FlyEvolver(calib, seed=0)
     ev.set_images(left, right)
-    term = SonarTerm(SonarTermConfig(height_m=HEIGHT))
+    term = SonarTerm(SonarTermConfig(height_m=HEIGHT, reward_gain=1.0))
     term.update(ring_scan(), T_BASE_CAMERA)
     pts = in_camera([[1.0, 0.0, 0.40], [WALL_X, 0.0, 0.40]])   # both in the camera's view, in the beam
     base = ev.evaluate(pts)

@@ -1,18 +1,27 @@
-"""Sonar fitness term for the fly evolver: flies in a beam's free space lose, flies at its echo range win.
+"""Sonar fitness term for the fly evolver: flies in a beam's free space lose, (optionally) flies at its echo win.
 
 A sonar echo at range r says two things about the cone of its beam: nothing reflective lies nearer than
 r (free space), and something lies at r.  So, for a fly at distance d from a transducer and inside its
 beam (an elliptic cone around the transducer's horizontal axis: ``beam_width/2`` horizontally and
 ``vertical_half_angle_rad`` vertically, by default the same),
 
-* reward   ``exp(-½((d − r)/σ)²)``                 with σ = ``echo_sigma_m`` + ``echo_sigma_rel``·r,
-* penalty  ``−clip((r − d − σ)/σ, 0, 1)``           (0 within σ of the echo, −1 from 2σ nearer),
+* penalty  ``−(½ + ½·(r − d)/r) · clip((r − d − σ)/σ, 0, 1)``: 0 within σ of the echo, −½ from 2σ nearer,
+  deepening to −1 at the transducer (a flat penalty gives a fly deep in free space no reason to move —
+  its mutated children score the same — the slope leads it out towards the echo range);
+* reward   ``reward_gain · exp(−½((d − r)/σ)²)``,     σ = ``echo_sigma_m`` + ``echo_sigma_rel``·r,
 
-and nothing beyond r + 3σ (the beam may be occluded there), nearer than the ring's minimum range (blind)
-or outside every beam.  Beams without an echo say nothing by default: a smooth wall seen obliquely
-returns no echo, so "no echo" is not "free" (``no_echo_is_free`` turns that reading on).  Contributions
-of overlapping beams add up and the total is clipped to [−1, 1]; the evolver multiplies it by its weight
-(image fitness lies in [0, 1), so a weight around 0.3–1 makes sonar matter without overriding vision).
+and nothing beyond r + 3σ (the beam may be occluded there), nearer than the ring's minimum range (blind),
+below ``floor_clearance_m`` (the floor lies inside a horizontal cone but, seen at grazing incidence, never
+echoes: it is not free space) or outside every beam.  Beams without an echo say nothing by default: a
+smooth wall seen obliquely returns no echo, so "no echo" is not "free" (``no_echo_is_free`` turns that
+reading on).  Contributions of overlapping beams add up and the total is clipped to [−1, 1]; the evolver
+multiplies it by its weight (image fitness lies in [0, 1)).
+
+The reward is OFF by default (``reward_gain=0``): an echo says the *nearest* surface in the cone is at r,
+so only one part of the arc of radius r is on a surface — for a wall seen obliquely (a corridor's side
+walls in the ±30° beams) the rest of the arc is free space.  On bench/fusion.py (texture-poor corridor)
+rewarding the arc drew most flies onto it and the fraction of flies on real surfaces fell from ≈0.39 to
+0.02–0.10; the free-space penalty alone changed it by less than the run-to-run noise (±0.02).
 
 Everything is vectorised over flies × beams (numpy, float32).  The flies arrive in the LEFT OPTICAL
 camera frame; ``T_base_camera`` (StereoCalibration.T_base_camera, possibly composed with the robot's
@@ -42,12 +51,17 @@ class SonarTermConfig:
     echo_sigma_rel: float = 0.01
     vertical_half_angle_rad: float | None = None   # None: same as the horizontal half beam width
     no_echo_is_free: bool = False
+    floor_clearance_m: float = 0.10         # flies lower than this (base_link z) are ignored: see below
+    reward_gain: float = 0.0                # scales the echo-range reward (off by default: see above)
+    penalty_gain: float = 1.0               # scales the free-space penalty
 
     def __post_init__(self):
         if not np.isfinite(self.height_m):
             raise SonarScanError("height_m must be finite")
         if not (self.echo_sigma_m > 0 and self.echo_sigma_rel >= 0):
             raise SonarScanError("echo_sigma_m must be > 0 and echo_sigma_rel >= 0")
+        if not (0 <= self.reward_gain <= 1 and 0 <= self.penalty_gain <= 1):
+            raise SonarScanError("reward_gain and penalty_gain must be in [0, 1]")
         v = self.vertical_half_angle_rad
         if v is not None and not (0 < v < np.pi / 2):
             raise SonarScanError(f"vertical_half_angle_rad must be in (0, π/2), got {v}")
@@ -86,7 +100,8 @@ def _beams(positions, T_base_camera, scan: SonarScan, cfg: "SonarTermConfig"):
     half_v = cfg.vertical_half_angle_rad or half_h
     az = np.arctan2(lat, ax)
     el = np.arctan2(dz, horizontal)
-    inside = (ax > 0) & ((az / half_h) ** 2 + (el / half_v) ** 2 <= 1.0) & (d >= scan.min_range_m)
+    inside = ((ax > 0) & ((az / half_h) ** 2 + (el / half_v) ** 2 <= 1.0) & (d >= scan.min_range_m)
+              & (p[:, 2:3] >= np.float32(cfg.floor_clearance_m)))
     return inside, d, r, echo
 
 
@@ -99,8 +114,12 @@ def sonar_fitness(positions: np.ndarray, T_base_camera: np.ndarray, scan: SonarS
         return np.zeros(len(inside), np.float32)
     sigma = np.float32(cfg.echo_sigma_m) + np.float32(cfg.echo_sigma_rel) * r                # (K,)
     u = (d - r) / sigma
-    reward = np.where(echo & (u <= 3.0), np.exp(-0.5 * u * u), 0.0)
-    penalty = -np.clip((-u - 1.0), 0.0, 1.0)
+    reward = np.where(echo & (u <= 3.0), np.float32(cfg.reward_gain) * np.exp(-0.5 * u * u), 0.0)
+    # The free-space penalty steps to −½ just in front of the echo and deepens linearly towards the
+    # transducer: a flat −1 gives a fly deep in free space no reason to move (its mutated children score
+    # the same), the slope leads it out towards the echo range.
+    depth_in_free = np.clip((r - d) / r, 0.0, 1.0)
+    penalty = -np.float32(cfg.penalty_gain) * np.clip((-u - 1.0), 0.0, 1.0) * (0.5 + 0.5 * depth_in_free)
     score = np.where(inside, reward + penalty, 0.0).sum(axis=1)
     return np.clip(score, -1.0, 1.0).astype(np.float32)
 
