@@ -4,7 +4,8 @@ from .field import PseudoDistanceField
 
 __all__ = ["PopulationError", "field_exact", "pseudo_distance_exact", "PseudoDistanceField"]
 from .register import RegistrationResult, StereoModel, register_6dof, register_planar
-from .weights import covisible_masks, depth_sigma, depth_weights, visible_mask
+from .local import LocalCorrelationField
+from .weights import covisible_masks, depth_sigma, depth_weights, footprint_weights, visible_mask
 
 __all__ += ["RegistrationResult", "StereoModel", "register_6dof", "register_planar", "covisible_masks",
-            "depth_sigma", "depth_weights", "visible_mask"]
+            "depth_sigma", "depth_weights", "footprint_weights", "visible_mask", "LocalCorrelationField"]

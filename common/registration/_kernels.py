@@ -331,12 +331,13 @@ def fast_field_serial(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell,
     return S, G, outside.sum()
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims,
                 near):
     """Σᵢ wa_i / S_B(Rᵀ(a_i − t)) for every candidate (R, t): the un-normalised δ(A, f(B)).
 
-    Parallel over candidates; used by the coarse global search.
+    Serial: on the shared 2-core machine parallel threads stall whenever another process holds a
+    core (measured 10× slower), and the lattice is small.  Used by the coarse global search.
     """
     m = Rs.shape[0]
     out = np.empty(m)
@@ -374,9 +375,9 @@ def near_field(Q, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     return S, G
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def batch_near(A, wa, Rs, ts, Bs, wbs, start, clo, cell, dims, eps, rc):
-    """Σᵢ wa_i · near-sum(Rᵀ(a_i − t)) for every candidate (R, t), parallel over candidates."""
+    """Σᵢ wa_i · near-sum(Rᵀ(a_i − t)) for every candidate (R, t) (serial, see batch_delta)."""
     m = Rs.shape[0]
     out = np.empty(m)
     for k in prange(m):

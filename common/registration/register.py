@@ -296,13 +296,15 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     Rs = np.stack([P[0] for P in poses])
     ts = np.stack([P[1] for P in poses])
     if objective == "delta":
-        opts = dict(field_options or {})
+        # near_cells=1: the registration grid spans the whole search reach, so its spacing is coarse
+        # and r_c = 2 spacings would gather hundreds of neighbours per fly (δ stays within 0.1 %).
+        opts = dict(dict(near_cells=1.0), **(field_options or {}))
         fld = PseudoDistanceField(B, eps, weights_b=wb, bounds=(lo - pad, hi + pad), **opts)
         fld_coarse, coarse_near = fld, False
     else:
-        # local correlation: the coarse level is the same kernel with a 3× wider cut-off
+        # local correlation: the coarse level is the same kernel with a 2× wider cut-off
         fld = LocalCorrelationField(B, eps, local_radius, weights_b=wb)
-        fld_coarse, coarse_near = LocalCorrelationField(B, eps, 3 * local_radius, weights_b=wb), True
+        fld_coarse, coarse_near = LocalCorrelationField(B, eps, 2 * local_radius, weights_b=wb), True
     t_field = time.perf_counter() - t0
 
     # --- 1. coarse lattice on the smoothed objective (far field only / wide local kernel)
@@ -312,7 +314,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     grid_vals = coarse.reshape(lat_shape)
     is_min = grid_vals == scipy.ndimage.minimum_filter(grid_vals, size=3, mode="nearest")
     seeds = np.flatnonzero(is_min.ravel())
-    seeds = seeds[np.argsort(coarse[seeds])][:4]
+    seeds = seeds[np.argsort(coarse[seeds])][:3]
     contrast = float(np.median(coarse) - coarse[seeds[0]])
 
     scale = np.where(half > 0, half, 1.0)
@@ -320,18 +322,18 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     lo_b = np.where(free, -1.0, 0.0)
     hi_b = np.where(free, 1.0, 0.0)
 
-    def polish(obj, p_start, maxiter):
+    def polish(obj, p_start, maxiter, xtol):
         x0 = np.clip((p_start - center) / scale, -1, 1)
 
         def fun(x):
             v, g = obj.value_and_grad(center + x * scale)
             return v, g * scale
-        x, v = _bfgs_box(fun, x0, lo_b, hi_b, maxiter)
+        x, v = _bfgs_box(fun, x0, lo_b, hi_b, maxiter, xtol=xtol)
         return center + x * scale, v
 
     # --- 2. polish the lattice minima on the smoothed δ
     smooth = _Objective(fld_coarse, Ac, wac, pose, near=coarse_near, kind=objective)
-    polished = [polish(smooth, cand[s], 30) for s in seeds]
+    polished = [polish(smooth, cand[s], 20, 1e-3) for s in seeds]
     polished.sort(key=lambda pv: pv[1])
     # distinct minima only (closer than one lattice step in every scaled coordinate = same basin)
     step = np.where(np.asarray(lattice_counts) > 1, 2.0 / (np.maximum(lattice_counts, 2) - 1), 1.0)
@@ -344,7 +346,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     full = _Objective(fld, A[fine_idx], wa[fine_idx], pose, near=True, kind=objective)
     # the runner-up is worth refining only if, smoothed, it is already nearly as deep as the best
     rivals = [pv for pv in distinct[1:2] if pv[1] - distinct[0][1] < 3 * (1 - ambiguity_ratio) * contrast]
-    refined = [polish(full, p, 60) for p, _ in distinct[:1] + rivals]
+    refined = [polish(full, p, 60, 1e-4) for p, _ in distinct[:1] + rivals]
     refined.sort(key=lambda pv: pv[1])
     p_best, d_best = refined[0]
     evals += smooth.count + full.count
@@ -447,6 +449,7 @@ class StereoModel:
     frame: str = "optical"
     objective: str = "local"
     local_radius: float = 0.5
+    thin_b: bool = True
 
 
 def _register_stereo(mode, A, B, stereo: StereoModel, prior, window, weights_a, weights_b, args):
@@ -462,6 +465,15 @@ def _register_stereo(mode, A, B, stereo: StereoModel, prior, window, weights_a, 
     if stereo.footprint_weighting:
         wa *= footprint_weights(A, stereo.calib, frame)
         wb *= footprint_weights(B, stereo.calib, frame)
+    if stereo.thin_b and len(B):
+        # Russian roulette on B: keep a fly with probability min(1, w / median w) and divide its
+        # weight by that probability.  The field is unchanged in expectation, but the dense, light
+        # near-camera flies (most of the neighbour work) are mostly gone.
+        rng = np.random.default_rng(args["rest"][7])
+        ref = float(np.median(wb[wb > 0])) if np.any(wb > 0) else 1.0
+        p_keep = np.minimum(1.0, wb / ref)
+        keep = rng.random(len(B)) < p_keep
+        B, wb = B[keep], wb[keep] / p_keep[keep]
     T = np.eye(4) if prior is None else np.asarray(prior, dtype=float)
     res = None
     for _ in range(max(1, int(stereo.passes))):
