@@ -20,7 +20,7 @@ multiplies it by its weight (image fitness lies in [0, 1)).
 The reward is OFF by default (``reward_gain=0``): an echo says the *nearest* surface in the cone is at r,
 so only one part of the arc of radius r is on a surface — for a wall seen obliquely (a corridor's side
 walls in the ±30° beams) the rest of the arc is free space.  On bench/fusion.py (texture-poor corridor)
-rewarding the arc drew most flies onto it and the fraction of flies on real surfaces fell from ≈0.39 to
+rewarding the arc drew most flies onto it and the fraction of flies on real surfaces fell from 0.33–0.39 to
 0.02–0.10; the free-space penalty alone changed it by less than the run-to-run noise (±0.02).
 
 Everything is vectorised over flies × beams (numpy, float32).  The flies arrive in the LEFT OPTICAL
