@@ -51,6 +51,7 @@ LATEST_STREAMS = {
     "stereo/frame": m.StereoFrame,
     "flies/population": m.FlyPopulation,
     "planner/field": m.HarmonicField,
+    "fusion/sonar_points": m.FlyPopulation,
 }
 INBOX_SIZE = 20_000
 

@@ -74,7 +74,7 @@ def test_bridge_logs_the_bus_live_and_to_a_file_that_verifies_after_sigterm(zeno
         stop(proc)
     _verify(rrd)
     rows = rrd_rows(rrd)
-    for entity in (P.LEFT, P.RIGHT, P.FLIES, P.LEFT_FLIES, P.ROBOT, P.MAP_POINTS, P.FIELD, P.TARGET_3D,
+    for entity in (P.LEFT, P.RIGHT, P.FLIES, P.LEFT_FLIES, P.ROBOT, P.MAP_POINTS, P.FIELD, P.TARGET_3D, P.SONAR_POINTS,
                    f"{P.CMD}/linear_mps", f"{P.PROGRESS}/feeder", f"{P.ALIVE}/feeder",
                    *(P.trajectory_segment_path(s, 0) for s in P.TRAJECTORY_STYLE)):
         assert f"/{entity}" in rows, f"{entity} missing from the .rrd"

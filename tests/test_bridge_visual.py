@@ -60,7 +60,7 @@ def test_synthetic_run_fills_every_view_and_the_file_verifies(synthetic_rrd):
         P.LEFT_FLIES: "Points2D:positions", P.RIGHT_FLIES: "Points2D:positions", P.ROBOT: "Transform3D:translation",
         P.MAP_POINTS: "Points3D:positions", P.MAP_KEYFRAMES: "Points3D:positions", P.FIELD: "EncodedImage:blob",
         P.FIELD_PATH: "LineStrips2D:strips", P.PLANNED_PATH_3D: "LineStrips3D:strips",
-        P.TARGET_3D: "Points3D:positions", f"{P.CMD}/linear_mps": "Scalars:scalars",
+        P.TARGET_3D: "Points3D:positions", P.SONAR_POINTS: "Points3D:positions", f"{P.CMD}/linear_mps": "Scalars:scalars",
         f"{P.CMD}/angular_radps": "Scalars:scalars", f"{P.PROGRESS}/evolver": "Scalars:scalars",
         f"{P.RATES}/localiser/frames_per_s": "Scalars:scalars", f"{P.PROBLEMS}/planner/rejected": "Scalars:scalars",
         f"{P.ALIVE}/evolver": "Scalars:scalars", P.EVENTS: "TextLog:text",

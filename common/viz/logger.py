@@ -147,8 +147,11 @@ class RerunLogger:
     def handle(self, stream: str, msg) -> None:
         """Log one message that arrived on ``stream`` (the key without the robot prefix)."""
         self.counts[stream] = self.counts.get(stream, 0) + 1
-        if isinstance(msg, (m.PoseEstimate,)):
+        if isinstance(msg, m.PoseEstimate):
             self.pose(stream, msg)
+            return
+        if stream == "fusion/sonar_points" and isinstance(msg, m.FlyPopulation):
+            self.sonar_points(msg)
             return
         handler = self._handlers.get(type(msg))
         if handler is None:
@@ -212,6 +215,14 @@ class RerunLogger:
                                                radii=-1.5, draw_order=10.0))
         self.rec.log(P.RIGHT_FLIES, rr.Points2D(np.stack([ur[in_right], v[in_right]], 1),
                                                 colors=colours[in_right], radii=-1.5, draw_order=10.0))
+
+    def sonar_points(self, msg: m.FlyPopulation) -> None:
+        """Fusion's sonar echo points (a FlyPopulation in base_link) under the robot."""
+        if msg.header.frame_id not in ("", m.BASE_LINK):
+            raise ValueError(f"sonar points in frame {msg.header.frame_id!r}, expected {m.BASE_LINK}")
+        self._sensor(msg.header.stamp_ns)
+        self._at(msg.header.stamp_ns)
+        self.rec.log(P.SONAR_POINTS, rr.Points3D(msg.positions, colors=[(255, 80, 160)], radii=-3.0))
 
     # ------------------------------------------------------------------------------------ poses
     def pose(self, stream: str, msg: m.PoseEstimate) -> None:

@@ -19,6 +19,7 @@ LEFT = "world/robot/camera/left"         # Pinhole + left image
 LEFT_FLIES = "world/robot/camera/left/flies"   # Points2D on the left image
 RIGHT = "images/right"                   # right image (2-D only)
 RIGHT_FLIES = "images/right/flies"       # the same flies at their right-image projection
+SONAR_POINTS = "world/robot/sonar_points"  # fusion's sonar echoes, in base_link
 MAP_POINTS = "world/map/points"
 MAP_KEYFRAMES = "world/map/keyframes"
 TRAJECTORIES = "world/trajectories"
