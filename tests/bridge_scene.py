@@ -102,8 +102,9 @@ def messages(frames: int = 30, flies: int = 2000, seed: int = 0, calib: StereoCa
         echoes = np.array([[WALL_X - T[0, 3], a, 0.2] for a in (-0.3, 0.0, 0.3)], np.float32)
         yield "fusion/sonar_points", m.FlyPopulation(positions=echoes, fitness=np.ones(3, np.float32), source_seq=i + 1,
                                                      header=m.header(i + 1, t, m.BASE_LINK))
-        yield "planner/cmd_vel", m.VelocityCommand(linear_mps=0.4, angular_radps=0.2 * np.sin(i / 5),
-                                                   stop=i == frames - 1, reason="target reached" if i == frames - 1 else "",
+        last = i == frames - 1
+        yield "planner/cmd_vel", m.VelocityCommand(linear_mps=0.4, angular_radps=0.2 * np.sin(i / 5), stop=last,
+                                                   reason="target reached" if last else "",
                                                    header=m.header(i + 1, t, m.BASE_LINK))
         if i % 5 == 0:
             yield "planner/field", harmonic_field(i)
