@@ -313,3 +313,23 @@ def extend_scale(s, known, state, step):
                 qx[tail] = nx
                 tail += 1
     return filled
+
+
+def usable_fraction(psi: np.ndarray, state: np.ndarray) -> float:
+    """Share of ACTIVE cells from which discrete steepest ascent of ``psi`` reaches a TARGET cell
+    (padded arrays).  1.0 for a correct harmonic field; a flat (underflowed) field scores low."""
+    active = state == ACTIVE
+    if not active.any():
+        return float("nan")
+    ok = reaches_target(descent_successor(psi, state))
+    return float(ok[active].mean())
+
+
+def plain_potential(state: np.ndarray, dtype=np.float64, omega: float = 1.9, max_sweeps: int = 100000,
+                    tol: float = 0.0) -> np.ndarray:
+    """The textbook harmonic potential u (1 on BLOCKED, 0 on TARGET) by SOR in ``dtype``, iterated until
+    no cell changes by more than ``tol`` (0: until nothing changes at all in that precision).  Kept as the
+    baseline that shows the underflow; returns the padded u."""
+    u = np.where(state == TARGET, 0.0, 1.0).astype(dtype)
+    plain_sor(u, state, omega, max_sweeps, tol)
+    return u
