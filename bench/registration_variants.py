@@ -6,7 +6,9 @@ flies spread evenly over a 640×480 image of a 0.5 m-baseline rig, depths 2–40
 random planar motion (|x| ≤ 0.5 m, z ∈ [0.3, 1.2] m forward, |θ| ≤ 6°) and two *independent*
 populations, one per pose (not a replica), and registers with each variant from an identity prior.
 
-Prints a table (median / 90th-percentile translation and rotation error, failures, time) and, with
+Prints a table (median / 90th-percentile translation and rotation error, reported failures, time,
+and the median NEES eᵀΣ⁻¹e of the successful runs — 3 would mean the covariance is honest, more
+means it is over-confident) and, with
 --json, one JSON object as the last line.  Progress goes to stderr.
 """
 from __future__ import annotations
@@ -56,6 +58,7 @@ def run(trials: int, n: int, disparity_sigma: float, seed: int):
     errs = {k: [] for k in names}
     fails = {k: 0 for k in names}
     times = {k: [] for k in names}
+    nees = {k: [] for k in names}
     for trial in range(trials):
         scene = scenes.street_scene(rng)
         truth = np.array([rng.uniform(-0.5, 0.5), rng.uniform(0.3, 1.2), np.deg2rad(rng.uniform(-6, 6))])
@@ -73,6 +76,9 @@ def run(trials: int, n: int, disparity_sigma: float, seed: int):
                 continue
             if not res.ok:
                 fails[name] += 1
+            else:
+                e = p - truth
+                nees[name].append(float(e @ np.linalg.solve(res.covariance, e)))
             errs[name].append((float(np.hypot(p[0] - truth[0], p[1] - truth[1])),
                                float(np.rad2deg(abs(p[2] - truth[2])))))
         print(f"trial {trial + 1}/{trials} done", file=sys.stderr)
@@ -82,7 +88,8 @@ def run(trials: int, n: int, disparity_sigma: float, seed: int):
         table[name] = dict(
             trans_err_median_m=float(np.median(e[:, 0])), trans_err_p90_m=float(np.percentile(e[:, 0], 90)),
             rot_err_median_deg=float(np.median(e[:, 1])), rot_err_p90_deg=float(np.percentile(e[:, 1], 90)),
-            reported_failures=int(fails[name]), time_median_ms=float(1e3 * np.median(times[name])))
+            reported_failures=int(fails[name]), time_median_ms=float(1e3 * np.median(times[name])),
+            nees_median=float(np.median(nees[name])) if nees[name] else float("nan"))
     return table
 
 
@@ -97,11 +104,11 @@ def main():
     table = run(args.trials, args.flies, args.disparity_sigma, args.seed)
     print(f"deep street scene, {args.flies} flies/view, {args.trials} trials, "
           f"disparity noise {args.disparity_sigma} px, depths 2–40 m")
-    print(f"{'variant':34s} {'t med m':>8s} {'t p90 m':>8s} {'r med °':>8s} {'r p90 °':>8s} {'fails':>6s} {'ms':>7s}")
+    print(f"{'variant':34s} {'t med m':>8s} {'t p90 m':>8s} {'r med °':>8s} {'r p90 °':>8s} {'fails':>6s} {'ms':>7s} {'NEES':>8s}")
     for name, r in table.items():
         print(f"{name:34s} {r['trans_err_median_m']:8.3f} {r['trans_err_p90_m']:8.3f} "
               f"{r['rot_err_median_deg']:8.2f} {r['rot_err_p90_deg']:8.2f} {r['reported_failures']:6d} "
-              f"{r['time_median_ms']:7.0f}")
+              f"{r['time_median_ms']:7.0f} {r['nees_median']:8.3g}")
     if args.json:
         print(json.dumps(dict(trials=args.trials, flies=args.flies, disparity_sigma=args.disparity_sigma,
                               variants=table)))

@@ -130,3 +130,20 @@ def test_malformed_input_raises():
         register_planar(A, A, prior=np.ones((4, 4)))
     with pytest.raises(PopulationError, match="window"):
         register_6dof(A, A, window=(1, 1, 1))
+
+
+def test_repeating_structure_is_reported_ambiguous():
+    rng = np.random.default_rng(17)
+
+    def poles(n, period=2.0):  # identical poles every 2 m along the street, on both sides
+        k = rng.integers(-20, 21, n)
+        side = rng.choice([-2.0, 2.0], n)
+        return np.column_stack([side + rng.normal(0, 0.05, n), rng.uniform(-2, 1.5, n),
+                                k * period + rng.normal(0, 0.05, n)])
+    A = poles(3000)
+    B = transform_points(invert(make_transform(None, [0, 0, 0.3])), poles(3000))
+    # A window longer than the period holds several equally good answers.
+    res = register_planar(A, B, window=(0.5, 2.5, 0.05), objective="local")
+    assert not res.ok
+    assert "ambiguous" in res.reason
+    assert res.ambiguity > 0.9
