@@ -10,7 +10,8 @@ Figures (no pass/fail; noisy on a shared machine):
   generation is N = population-size offspring, each made, evaluated and inserted (or rejected) — made in
   one batch: parents drawn for all N, children made and evaluated together, then inserted one by one;
 - sgbm_time_s: cv2.StereoSGBM (3-way, 64 disparities ⊇ the pair's 7–60 px) on the motorcycle pair;
-- inliers_at_sgbm_time, inliers_at_1s, time_to_90pct_inliers_s: the shared accuracy measure
+- inliers_at_sgbm_time, inliers_at_1s, time_to_90pct_inliers_s (medians of 3 runs, each read at its own
+  back-to-back SGBM time): the shared accuracy measure
   (common.fly.metrics) from random initialisation; the clock starts before set_images (per-frame
   preprocessing included) and is paused while the measure itself is computed.  The flies search the
   same disparity range as SGBM (0…64 px, i.e. depths 2.02…6.18 m); default EvolverConfig otherwise;
@@ -46,6 +47,13 @@ SGBM_DISPARITIES = 64
 def sgbm_range_config(calib) -> dict:
     fb = calib.fx * calib.baseline
     return dict(depth_min=fb / (SGBM_DISPARITIES + calib.doffs), depth_max=fb / calib.doffs)
+
+
+RUNS = 3
+
+
+def _ms(t):
+    return "never" if t is None else f"{t * 1e3:.0f} ms"
 
 
 def log(msg: str) -> None:
@@ -172,14 +180,29 @@ def main(argv=None) -> int:
     gens = rate(lambda: ev.step(5), 5, min_time=1.0)
     log(f"  {gens:.1f} generations/s ({gens * 5000 / 1e6:.2f} M offspring/s)")
 
-    log("SGBM (3-way, 64 disparities) on the motorcycle pair:")
-    sgbm_s, sgbm_bad1, sgbm_bad1_valid = sgbm(pair)
-    log(f"  {sgbm_s * 1e3:.1f} ms per frame, bad-1 {sgbm_bad1:.3f} over all known pixels, "
-        f"{sgbm_bad1_valid:.3f} over the pixels SGBM did not reject")
-
-    log(f"accuracy vs time from random initialisation ({args.seconds:.1f} s):")
-    trace, n_gen = accuracy_vs_time(pair, max(args.seconds, 1.0, sgbm_s), args.seed)
-    t90 = next((e for e, f in trace if f >= 0.9), None)
+    # The machine is shared and its load changes by the second: SGBM and the flies are timed back to
+    # back, RUNS times, and each run's flies are read at that run's own SGBM time; medians are reported.
+    log(f"SGBM (3-way, {SGBM_DISPARITIES} disparities) vs flies from random initialisation, {RUNS} runs:")
+    runs = []
+    for r in range(RUNS):
+        sgbm_s, sgbm_bad1, sgbm_bad1_valid = sgbm(pair)
+        trace, n_gen = accuracy_vs_time(pair, max(args.seconds if r == 0 else 1.05, 1.05, sgbm_s), args.seed + r)
+        t90 = next((e for e, f in trace if f >= 0.9), None)
+        runs.append(dict(sgbm=sgbm_s, at_sgbm=at_time(trace, sgbm_s), at_1s=at_time(trace, 1.0), t90=t90,
+                         t80=next((e for e, f in trace if f >= 0.8), None)))
+        log(f"  run {r}: SGBM {sgbm_s * 1e3:.1f} ms (bad-1 {sgbm_bad1:.3f} all known px, {sgbm_bad1_valid:.3f} "
+            f"where SGBM answered); flies {runs[-1]['at_sgbm']:.3f} at SGBM time, {runs[-1]['at_1s']:.3f} at 1 s, "
+            f"80 % at {_ms(runs[-1]['t80'])}, 90 % at {_ms(t90)}")
+        if r == 0:
+            first_trace = trace
+            for t in (0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 3.0):
+                if t <= trace[-1][0]:
+                    log(f"    t={t:4.2f} s: {at_time(trace, t):.3f} inliers")
+    med = lambda key: float(np.median([r[key] for r in runs]))  # noqa: E731
+    t90s = [r["t90"] for r in runs]
+    t90 = None if any(t is None for t in t90s) else float(np.median(t90s))
+    sgbm_s = med("sgbm")
+    trace = first_trace
     res = {
         "fly_evals_per_s": round(r5["sorted"]),
         "fly_evals_per_s_random_order": round(r5["random"]),
@@ -191,16 +214,14 @@ def main(argv=None) -> int:
         "sgbm_time_s": round(sgbm_s, 4),
         "sgbm_bad1": round(sgbm_bad1, 4),
         "sgbm_bad1_valid_only": round(sgbm_bad1_valid, 4),
-        "inliers_at_sgbm_time": round(at_time(trace, sgbm_s), 4),
-        "inliers_at_1s": round(at_time(trace, 1.0), 4),
+        "inliers_at_sgbm_time": round(med("at_sgbm"), 4),
+        "inliers_at_1s": round(med("at_1s"), 4),
         "time_to_90pct_inliers_s": None if t90 is None else round(t90, 3),
+        "runs": RUNS,
         "inliers_final": round(trace[-1][1], 4),
-        "generations_in_run": n_gen,
+        "seconds_final": round(trace[-1][0], 2),
         "scaling": {str(n): round(rates[n]["sorted"]) for n in (20000, 100000)},
     }
-    for t in (0.1, 0.25, 0.5, 1.0, 2.0, 3.0):
-        if t <= trace[-1][0]:
-            log(f"  t={t:4.2f} s: {at_time(trace, t):.3f} inliers")
     log("")
     log("summary:")
     log(f"  fitness: {res['fly_evals_per_s'] / 1e6:.2f} M evals/s (shuffled {r5['random'] / 1e6:.2f}), "

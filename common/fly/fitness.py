@@ -62,18 +62,23 @@ def _as_float_image(img: np.ndarray, which: str) -> np.ndarray:
 
 def estimate_noise_sigma(grey: np.ndarray, flat_fraction: float = 0.3) -> float:
     """Noise std (grey levels) of a grey image: Immerkær's Laplacian-difference estimator restricted to
-    the ``flat_fraction`` of pixels with the weakest gradient, so texture is not mistaken for noise."""
+    the ``flat_fraction`` of pixels with the weakest gradient, so texture is not mistaken for noise.
+
+    Evaluated at every other row and column (a quarter of the pixels: plenty for two statistics)."""
     g = np.asarray(grey, dtype=np.float32)
     if g.shape[0] < 3 or g.shape[1] < 3:
         raise ImageError(f"image {g.shape} too small to estimate noise")
-    m = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
-    conv = np.abs(cv2.filter2D(g, cv2.CV_32F, m, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1])
-    grad = (np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)))
-    # A 2×2-subsampled set of pixels is plenty for two statistics and four times cheaper.
-    grad, conv = grad[1:-1:2, 1:-1:2].ravel(), conv[::2, ::2].ravel()
+    a, b, c = g[0:-2:2], g[1:-1:2], g[2::2]          # row triplets centred on rows 1, 3, 5, ...
+
+    def cols(r, w0, w1, w2):                          # horizontal 3-tap filter at columns 1, 3, 5, ...
+        return w0 * r[:, 0:-2:2] + w1 * r[:, 1:-1:2] + w2 * r[:, 2::2]
+
+    lap = np.abs(cols(a, 1, -2, 1) - 2 * cols(b, 1, -2, 1) + cols(c, 1, -2, 1))
+    grad = (np.abs(cols(a, -1, 0, 1) + 2 * cols(b, -1, 0, 1) + cols(c, -1, 0, 1))
+            + np.abs(cols(c, 1, 2, 1) - cols(a, 1, 2, 1))).ravel()
     k = max(int(flat_fraction * grad.size) - 1, 0)
     flat = grad <= np.partition(grad, k)[k]
-    return float(np.sqrt(np.pi / 2) * conv[flat].mean(dtype=np.float64) / 6.0)
+    return float(np.sqrt(np.pi / 2) * lap.ravel()[flat].mean(dtype=np.float64) / 6.0)
 
 
 def window_weights(n: int, channels: int, sigma: float | None) -> np.ndarray:
