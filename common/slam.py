@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.geometry import invert, make_transform, planar_from_transform, planar_pose, transform_points
-from common.registration import register_planar
+from common.registration import PopulationError, register_planar
 
 
 class LocaliserError(ValueError):
@@ -199,8 +199,11 @@ class FlyLocaliser:
         # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
         B = transform_points(invert(T_pred), self.local_map(T_pred))
         window = c.window if source != "none" else (1.0, 1.0, np.deg2rad(20))
-        res = register_planar(points, B, plane="body", window=window, eps=c.eps, weights_a=fit / fit.max(),
-                              seed=int(stamp_ns % (2**31)))
+        try:
+            res = register_planar(points, B, plane="body", window=window, eps=c.eps, weights_a=fit / fit.max(),
+                                  seed=int(stamp_ns % (2**31)))
+        except PopulationError as e:   # e.g. a degenerate map; odometry carries on
+            return finish(T_pred, f"rejected: {e}", False, cov_pred)
         if not res.ok:
             return finish(T_pred, f"rejected: {res.reason}", False, cov_pred, res.delta)
         # res.T maps B's frame (predicted base) into A's frame (true base): T_true_pred.

@@ -4,6 +4,8 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
 
     [run]
     duration_s = 30                 # default bound; --duration overrides, 0 = until Ctrl-C
+    latch = ["fusion/odom"]         # streams the supervisor keeps and serves to queries, so a restarted
+                                    # service finds its last state on the bus though its publisher died
     [[service]]
     name = "recorder"
     module = "services.recorder"    # started as: python -m <module> <args> <bus flags>
@@ -77,6 +79,7 @@ class LaunchFile:
     services: list[ServiceSpec]
     robot: str | None = None
     vars: dict[str, str] = field(default_factory=dict)
+    latch: list[str] = field(default_factory=list)
 
 
 def load_launch(path: Path) -> LaunchFile:
@@ -109,7 +112,10 @@ def load_launch(path: Path) -> LaunchFile:
     if len(set(names)) != len(names):
         raise LaunchError(f"{path}: service names must be unique, got {names}")
     variables = {str(k): str(v) for k, v in data.get("vars", {}).items()}
-    return LaunchFile(Path(path), float(run.get("duration_s", 0)), services, run.get("robot"), variables)
+    latch = run.get("latch", [])
+    if not isinstance(latch, list) or not all(isinstance(k, str) for k in latch):
+        raise LaunchError(f"{path}: [run] latch must be a list of stream names")
+    return LaunchFile(Path(path), float(run.get("duration_s", 0)), services, run.get("robot"), variables, latch)
 
 
 # ----------------------------------------------------------------------------------- children
@@ -216,10 +222,28 @@ class Supervisor:
             self.stop_reason = reason
             self._stop.set()
 
+    def _hold_latched(self, node: Node, stream: str) -> None:
+        """Keep the newest payload of ``stream`` and answer queries with it (a restarted service recovers
+        its state from the bus even when the process that published it is the one that died)."""
+        last: list[bytes | None] = [None]
+        key = node.key(stream)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            last[0] = sample.payload.to_bytes()
+
+        def on_query(query: zenoh.Query) -> None:
+            if last[0] is not None:
+                query.reply(key, last[0])
+
+        node.session.declare_subscriber(key, on_sample)
+        node.session.declare_queryable(key, on_query)
+
     def run(self, node: Node) -> int:
         robot = node.robot
         node.session.liveliness().declare_subscriber(f"{robot}/health/*", self._on_liveliness, history=True)
         node.session.declare_subscriber(f"{robot}/status/*", self._on_status)
+        for stream in self.launch.latch:
+            self._hold_latched(node, stream)
         env = dict(os.environ, PYTHONUNBUFFERED="1", FLYSLAM_RUN_DIR=str(self.out))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         t_start = time.monotonic()

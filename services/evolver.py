@@ -165,17 +165,25 @@ def body(node, args) -> int:
 
 
 def _attach_sonar(evolver, inputs: Inputs, calib, weight: float) -> None:
-    """Plug the sonar fitness term (common.fusion) into the evolver, fed by the newest scan."""
-    from common.fusion.sonar_term import sonar_fitness_term
+    """Plug the sonar fitness term (common.fusion.sonar_term) into the evolver, fed by the newest scan."""
+    from common.fusion.sonar import SonarScanError
+    from common.fusion.sonar_term import SonarTerm
 
-    def term(positions):
+    term = SonarTerm()
+    seen = {"scan": None}
+
+    def fn(positions):
         with inputs.lock:
             scan = inputs.sonar
-        if scan is None:
-            return np.zeros(len(positions), np.float32)
-        return sonar_fitness_term(positions, calib.T_base_camera, scan)
+        if scan is not None and scan is not seen["scan"]:
+            seen["scan"] = scan
+            try:
+                term.update(scan, calib.T_base_camera)
+            except SonarScanError as e:
+                log.warning("sonar scan ignored: %s", e)
+        return term(positions)
 
-    evolver.add_fitness_term("sonar", term, weight)
+    evolver.add_fitness_term("sonar", fn, weight)
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,153 @@
+"""Planner service: harmonic-function obstacle avoidance steering the robot towards a target.
+
+Folds the newest ``flies/population`` (moved into the map frame with the population's odometry pose and
+the newest map→odom, or with the fused pose) and sonar echoes (``fusion/sonar_points``) into the
+planner's evidence grid, keeps the harmonic field up to date (warm-started), and publishes
+``planner/cmd_vel`` at ``--rate`` from the best current pose ``fusion/pose``. The target comes from
+``planner/target`` (latched; set by the launch file, the simulator's scenario or a user) or ``--target
+X Y``. It stops with a stated reason ('target reached', 'no path', 'no target', ...) in the command, and
+publishes the field with its descent path on ``planner/field`` at ``--field-hz``.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+
+import numpy as np
+
+from common import messages as m
+from common.geometry import planar_from_transform, transform_points
+from common.planning import HarmonicPlanner, PlannerConfig
+from services.base import run_service, service_parser
+
+log = logging.getLogger("flyslam.planner")
+
+
+def build_parser():
+    p = service_parser("planner", __doc__.splitlines()[0])
+    p.add_argument("--target", type=float, nargs=2, metavar=("X", "Y"), help="target in the map frame (overrides the bus)")
+    p.add_argument("--target-radius", type=float, default=0.4)
+    p.add_argument("--extent", type=float, nargs=4, default=[-2.0, -6.0, 26.0, 6.0], metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
+                   help="map-frame extent of the planning grid (m)")
+    p.add_argument("--resolution", type=float, default=0.05)
+    p.add_argument("--robot-radius", type=float, default=0.22)
+    p.add_argument("--v-max", type=float, default=0.4)
+    p.add_argument("--omega-max", type=float, default=1.0)
+    p.add_argument("--rate", type=float, default=10.0, help="command rate (Hz)")
+    p.add_argument("--field-hz", type=float, default=1.0, help="field publication rate (Hz)")
+    p.add_argument("--solve-ms", type=float, default=30.0, help="relaxation budget per cycle")
+    return p
+
+
+class Latest:
+    """The newest value of a callback stream, thread-safe."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self.value = None
+
+    def set(self, v):
+        with self._lock:
+            self.value = v
+
+    def get(self):
+        with self._lock:
+            return self.value
+
+
+def body(node, args) -> int:
+    x0, y0, x1, y1 = args.extent
+    planner = HarmonicPlanner(PlannerConfig(resolution=args.resolution, size_m=(x1 - x0, y1 - y0), origin=(x0, y0),
+                                            robot_radius=args.robot_radius, v_max=args.v_max,
+                                            omega_max=args.omega_max))
+    pose, map_to_odom, target, sonar, calib = Latest(), Latest(), Latest(), Latest(), Latest()
+    node.subscribe("fusion/pose", m.PoseEstimate, pose.set)
+    node.subscribe("slam/map_to_odom", m.TransformMsg, map_to_odom.set)
+    node.subscribe("planner/target", m.Target, target.set)
+    node.subscribe("fusion/sonar_points", m.FlyPopulation, sonar.set)
+    node.subscribe("stereo/calibration", m.StereoCalibrationMsg, calib.set)
+    populations = node.subscribe_latest("flies/population", m.FlyPopulation)
+    cmd_pub = node.publisher("planner/cmd_vel", reliable=True)
+    field_pub = node.publisher("planner/field")
+    if args.target is not None:
+        target.set(m.Target(x=args.target[0], y=args.target[1], radius_m=args.target_radius))
+    else:
+        t = node.query_latest("planner/target", m.Target, timeout=1.0)
+        if t is not None:
+            target.set(t)
+    if calib.get() is None:
+        calib.set(node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0))
+
+    current_target = None
+    last_sonar_seq = None
+    last_field = 0.0
+    last_cmd_reason = ""
+    period = 1.0 / args.rate
+    while not node.stopping:
+        t_cycle = time.monotonic()
+        tgt = target.get()
+        if tgt is not None and (tgt.x, tgt.y, tgt.radius_m) != current_target:
+            planner.set_target(tgt.x, tgt.y, max(tgt.radius_m, args.resolution))
+            current_target = (tgt.x, tgt.y, tgt.radius_m)
+            log.info("target (%.2f, %.2f) r=%.2f", *current_target)
+        fused = pose.get()
+        T_map_base = m.transform_of(fused) if fused is not None else None
+        pop = populations.take()
+        cal = calib.get()
+        if pop is not None and cal is not None:
+            T_map_cam = _population_pose(pop, map_to_odom.get(), T_map_base, cal.T_base_camera)
+            if T_map_cam is not None:
+                planner.update_flies(transform_points(T_map_cam, pop.positions.astype(np.float64)), pop.fitness,
+                                     pop.header.stamp_ns)
+        scan = sonar.get()
+        if scan is not None and scan.header.seq != last_sonar_seq and T_map_base is not None:
+            last_sonar_seq = scan.header.seq
+            pts = transform_points(T_map_base, scan.positions.astype(np.float64))
+            planner.update_sonar(pts[:, :2], scan.header.stamp_ns)
+        report = planner.solve(max_ms=args.solve_ms)
+        if T_map_base is None:
+            cmd = m.VelocityCommand(stop=True, reason="no pose")
+        else:
+            c = planner.command(planar_from_transform(T_map_base))
+            cmd = m.VelocityCommand(linear_mps=float(c.v), angular_radps=float(c.omega), stop=bool(c.stop), reason=c.reason)
+        cmd.header = m.header(0, time.time_ns(), m.BASE_LINK)
+        cmd_pub.publish(cmd)
+        if cmd.reason != last_cmd_reason:
+            log.info("command: %s", cmd.reason)
+            last_cmd_reason = cmd.reason
+        node.progress += 1
+        node.rates["solve_ms"] = float(report.elapsed_ms)
+        if time.monotonic() - last_field > 1.0 / args.field_hz:
+            last_field = time.monotonic()
+            path = None
+            if T_map_base is not None:
+                path = planner.path_from(T_map_base[0, 3], T_map_base[1, 3])
+            values = planner.field.astype(np.float32)
+            field_pub.publish(m.HarmonicField(values=values, origin_xy=np.array(planner.grid_origin, float),
+                                              resolution_m=planner.resolution,
+                                              path_xy=None if path is None or len(path) == 0 else path,
+                                              header=m.header(0, time.time_ns(), m.MAP)))
+        node.sleep(max(0.0, period - (time.monotonic() - t_cycle)))
+    cmd_pub.publish(m.VelocityCommand(stop=True, reason="planner stopped", header=m.header(0, time.time_ns(), m.BASE_LINK)))
+    return 0
+
+
+def _population_pose(pop: m.FlyPopulation, map_to_odom, T_map_base, T_base_camera):
+    """Camera pose in the map at the population's frame: odometry pose at that frame + newest map→odom
+    (exact for the frame); else the newest fused pose (approximate when the robot moved since)."""
+    if pop.T_odom_camera is not None:
+        T_map_odom = m.transform_of(map_to_odom) if map_to_odom is not None else np.eye(4)
+        return T_map_odom @ pop.T_odom_camera
+    if T_map_base is not None:
+        return T_map_base @ np.asarray(T_base_camera)
+    return None
+
+
+def main(argv=None) -> int:
+    return run_service("planner", build_parser(), body, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
