@@ -104,7 +104,7 @@ def perceive_sonar(pose, segments: np.ndarray, pc: PerceptionConfig, rng: np.ran
 
 def run_closed_loop(segments, start, target, bounds, *, config: PlannerConfig | None = None,
                     perception: PerceptionConfig | None = None, rate_hz: float = 10.0,
-                    substeps: int = 5, timeout_s: float = 90.0, sweeps_per_cycle: int = 60,
+                    substeps: int = 5, timeout_s: float = 90.0, sweeps_per_cycle: int = 30,
                     seed: int = 0) -> LoopResult:
     """Drive from ``start`` (x, y, yaw) to ``target`` (x, y, radius) among ``segments`` (M, 2, 2).
 
