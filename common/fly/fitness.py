@@ -100,20 +100,80 @@ def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.nd
     on one side (a strong foreground edge beside a flat background) is the one that a fly at the wrong
     depth matches well, and it gets a low G instead of the highest.
     """
-    b = cv2.BORDER_REPLICATE
     if not min_half_window or n < 3:
-        return cv2.boxFilter(sq_grad, cv2.CV_32F, (n, n), borderType=b)
-    h = n // 2
-    # Separable: full-height column sums then half-width row sums (left/right halves), and full-width
-    # row sums then half-height column sums (top/bottom halves).  Sums, not means: all four halves have
-    # the same (h + 1)·n pixels, and the scale is folded into the saturation constant by the caller.
-    cols = cv2.boxFilter(sq_grad, cv2.CV_32F, (1, n), normalize=False, borderType=b)
-    rows = cv2.boxFilter(sq_grad, cv2.CV_32F, (n, 1), normalize=False, borderType=b)
-    left = cv2.boxFilter(cols, cv2.CV_32F, (h + 1, 1), anchor=(h, 0), normalize=False, borderType=b)
-    right = cv2.boxFilter(cols, cv2.CV_32F, (h + 1, 1), anchor=(0, 0), normalize=False, borderType=b)
-    top = cv2.boxFilter(rows, cv2.CV_32F, (1, h + 1), anchor=(0, h), normalize=False, borderType=b)
-    bottom = cv2.boxFilter(rows, cv2.CV_32F, (1, h + 1), anchor=(0, 0), normalize=False, borderType=b)
-    return cv2.min(cv2.min(left, right), cv2.min(top, bottom)) * np.float32(1.0 / ((h + 1) * n))
+        return cv2.boxFilter(sq_grad, cv2.CV_32F, (n, n), borderType=cv2.BORDER_REPLICATE)
+    return _min_half_window_mean(np.ascontiguousarray(sq_grad, dtype=np.float32), n // 2)
+
+
+@numba.njit(cache=True)
+def _min_half_window_mean(sq, h):
+    """Per pixel, the least mean of ``sq`` over the four (2h+1)×(h+1) half-windows, replicated borders.
+    Running sums, row by row (memory order): a handful of passes over the image whatever h is."""
+    H, W = sq.shape
+    cols = np.zeros((H, W), np.float32)   # vertical (2h+1)-sums
+    rows = np.empty((H, W), np.float32)   # horizontal (2h+1)-sums
+    for j in range(-h, h + 1):
+        src = min(max(j, 0), H - 1)
+        for x in range(W):
+            cols[0, x] += sq[src, x]
+    for y in range(1, H):
+        a = min(y + h, H - 1)
+        r = max(y - h - 1, 0)
+        for x in range(W):
+            cols[y, x] = cols[y - 1, x] + sq[a, x] - sq[r, x]
+    for y in range(H):
+        acc = np.float32(0.0)
+        for i in range(-h, h + 1):
+            acc += sq[y, min(max(i, 0), W - 1)]
+        rows[y, 0] = acc
+        for x in range(1, W):
+            acc += sq[y, min(x + h, W - 1)] - sq[y, max(x - h - 1, 0)]
+            rows[y, x] = acc
+    out = np.empty((H, W), np.float32)
+    top = np.zeros(W, np.float32)       # running sums of `rows` over rows y-h..y (top half-window)
+    bottom = np.zeros(W, np.float32)    # ... and over rows y..y+h
+    for k in range(h + 1):
+        for x in range(W):
+            top[x] += rows[0, x]
+            bottom[x] += rows[min(k, H - 1), x]
+    scale = np.float32(1.0 / ((h + 1) * (2 * h + 1)))
+    for y in range(H):
+        if y > 0:
+            a = min(y + h, H - 1)
+            r = max(y - h - 1, 0)
+            for x in range(W):
+                top[x] += rows[y, x] - rows[r, x]
+                bottom[x] += rows[a, x] - rows[y - 1, x]
+        left = np.float32(0.0)
+        right = np.float32(0.0)
+        for k in range(h + 1):
+            left += cols[y, 0]
+            right += cols[y, min(k, W - 1)]
+        for x in range(W):
+            if x > 0:
+                left += cols[y, x] - cols[y, max(x - h - 1, 0)]
+                right += cols[y, min(x + h, W - 1)] - cols[y, x - 1]
+            out[y, x] = min(min(left, right), min(top[x], bottom[x])) * scale
+    return out
+
+
+@numba.njit(cache=True)
+def _float_and_grey(img, blur, remove_mean):
+    """float32 copy of a uint8 image (minus its local mean when ``remove_mean``) and its grey level
+    (channel mean, before mean removal), in one pass."""
+    H, W, C = img.shape
+    out = np.empty((H, W, C), np.float32)
+    grey = np.empty((H, W), np.float32)
+    inv_c = np.float32(1.0 / C)
+    for y in range(H):
+        for x in range(W):
+            g = np.float32(0.0)
+            for c in range(C):
+                a = np.float32(img[y, x, c])
+                g += a
+                out[y, x, c] = a - np.float32(blur[y, x, c]) if remove_mean else a
+            grey[y, x] = g * inv_c
+    return out, grey
 
 
 def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
@@ -131,17 +191,27 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
             calib.check_image(np.asarray(img), which)
         except CalibrationError as e:
             raise ImageError(str(e)) from e
-    L, R = _as_float_image(left, "left"), _as_float_image(right, "right")
-    if L.shape != R.shape:
-        raise ImageError(f"left {L.shape} and right {R.shape} images differ")
-    C = L.shape[2]
-    grey = L[:, :, 0].copy() if C == 1 else cv2.transform(L, np.full((1, C), 1.0 / C, np.float32))
-    if mean_removal_px:
-        k = (int(mean_removal_px), int(mean_removal_px))
-        bl = cv2.blur(np.asarray(left), k, borderType=cv2.BORDER_REPLICATE)   # uint8 blur: 4× less data
-        br = cv2.blur(np.asarray(right), k, borderType=cv2.BORDER_REPLICATE)
-        L = cv2.subtract(L, bl.reshape(L.shape), dtype=cv2.CV_32F).reshape(L.shape)
-        R = cv2.subtract(R, br.reshape(R.shape), dtype=cv2.CV_32F).reshape(R.shape)
+    la, ra = np.asarray(left), np.asarray(right)
+    if la.shape != ra.shape:
+        raise ImageError(f"left {la.shape} and right {ra.shape} images differ")
+    k = (int(mean_removal_px or 1), int(mean_removal_px or 1))
+    if la.dtype == np.uint8 and ra.dtype == np.uint8 and la.ndim in (2, 3):
+        la3 = la.reshape(la.shape[0], la.shape[1], -1)
+        ra3 = ra.reshape(ra.shape[0], ra.shape[1], -1)
+        if la3.shape[2] not in (1, 3):
+            raise ImageError(f"left image must be H×W mono or H×W×3 RGB, got shape {la.shape}")
+        bl = cv2.blur(la3, k, borderType=cv2.BORDER_REPLICATE).reshape(la3.shape) if mean_removal_px else la3
+        br = cv2.blur(ra3, k, borderType=cv2.BORDER_REPLICATE).reshape(ra3.shape) if mean_removal_px else ra3
+        L, grey = _float_and_grey(np.ascontiguousarray(la3), np.ascontiguousarray(bl), bool(mean_removal_px))
+        R, _ = _float_and_grey(np.ascontiguousarray(ra3), np.ascontiguousarray(br), bool(mean_removal_px))
+        C = L.shape[2]
+    else:
+        L, R = _as_float_image(left, "left"), _as_float_image(right, "right")
+        C = L.shape[2]
+        grey = L[:, :, 0].copy() if C == 1 else cv2.transform(L, np.full((1, C), 1.0 / C, np.float32))
+        if mean_removal_px:
+            L = L - cv2.blur(L, k, borderType=cv2.BORDER_REPLICATE).reshape(L.shape)
+            R = R - cv2.blur(R, k, borderType=cv2.BORDER_REPLICATE).reshape(R.shape)
     sigma = float(noise_sigma) if noise_sigma is not None else estimate_noise_sigma(grey)
     sigma = max(sigma, 0.5)  # quantisation alone is ~0.3 grey levels; never trust a zero estimate
     floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
