@@ -14,6 +14,8 @@ Figures (milliseconds are medians of repeated runs, numba compile time excluded 
   register_3dof_stereo_ms register_planar(..., stereo=StereoModel(rig)): the deep-scene variant
   register_6dof_ms        register_6dof(A, B) with the paper's δ
   *_err_m / *_err_deg     translation / rotation error of those registrations against the truth
+  *_cpu_ms                process CPU time (all threads) of the same calls: on the shared machine the
+                          wall clock also counts time spent waiting for a core
 
 The last stdout line with --json is one JSON object; "scaling" holds the same keys for 20,000 flies.
 """
@@ -33,13 +35,20 @@ from common.registration import (PseudoDistanceField, StereoModel, field_exact, 
 TRUTH = (0.3, 0.8, np.deg2rad(4.0))
 
 
-def timed(fn, repeat):
+CPU = {}
+
+
+def timed(fn, repeat, key=None):
+    """(last result, median wall ms); also records the median process CPU ms in CPU[key]."""
     out = None
-    ts = []
+    ts, cs = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
         ts.append(time.perf_counter() - t0)
+        cs.append(time.process_time() - c0)
+    if key:
+        CPU[key] = 1e3 * float(np.median(cs))
     return out, 1e3 * float(np.median(ts))
 
 
@@ -72,7 +81,8 @@ def measure(n, eps, repeat):
     for key, opts in (("", {}), ("lean_", dict(near_cells=0.75))):
         PseudoDistanceField(B[:100], eps, **opts).delta(A[:10])  # compile
         field, build_ms = timed(lambda: PseudoDistanceField(B, eps, bounds=bounds, **opts), 3)
-        fast, fast_ms = timed(lambda: field.delta(A), repeat)
+        fast, fast_ms = timed(lambda: field.delta(A), repeat, "d")
+        out["fast_" + key + "delta_cpu_ms"] = CPU["d"]
         tag = "fast_" + key
         out[("field_build_ms" if not key else tag + "field_build_ms")] = build_ms
         out[tag + "delta_ms"] = fast_ms
@@ -82,13 +92,17 @@ def measure(n, eps, repeat):
     register_planar(A[:500], B[:500])  # compile
     register_planar(A[:500], B[:500], stereo=StereoModel(rig))
     register_6dof(A[:500], B[:500])
-    res, out["register_3dof_ms"] = timed(lambda: register_planar(A, B, eps=eps), 3)
+    res, out["register_3dof_ms"] = timed(lambda: register_planar(A, B, eps=eps), 3, "r")
+    out["register_3dof_cpu_ms"] = CPU["r"]
     out["register_3dof_err_m"], out["register_3dof_err_deg"] = errors(res, TRUTH)
     out["register_3dof_ok"] = res.ok
-    res, out["register_3dof_stereo_ms"] = timed(lambda: register_planar(A, B, eps=eps, stereo=StereoModel(rig)), 3)
+    res, out["register_3dof_stereo_ms"] = timed(
+        lambda: register_planar(A, B, eps=eps, stereo=StereoModel(rig)), 3, "r")
+    out["register_3dof_stereo_cpu_ms"] = CPU["r"]
     out["register_3dof_stereo_err_m"], out["register_3dof_stereo_err_deg"] = errors(res, TRUTH)
     out["register_3dof_stereo_ok"] = res.ok
-    res, out["register_6dof_ms"] = timed(lambda: register_6dof(A, B, eps=eps), 2)
+    res, out["register_6dof_ms"] = timed(lambda: register_6dof(A, B, eps=eps), 2, "r")
+    out["register_6dof_cpu_ms"] = CPU["r"]
     out["register_6dof_err_m"], out["register_6dof_err_deg"] = errors(res, TRUTH)
     out["register_6dof_ok"] = res.ok
     return out

@@ -215,7 +215,7 @@ def _interp(grid, lo, h, qx, qy, qz, want_grad):
     return True, s, gx / h, gy / h, gz / h
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     """Σ_j w_j (K − K_far)(|q − b_j|) over B's flies within r_c of q, and its gradient.
 
@@ -226,6 +226,10 @@ def _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     dx = 0.0
     dy = 0.0
     dz = 0.0
+    dc = eps + rc
+    kc = 1.0 / dc                   # K(r_c)
+    c1 = 1.0 / (2.0 * rc * dc * dc)  # K_far(r) = kc − (r² − r_c²)·c1 inside r_c
+    c2 = 2.0 * c1                    # −K_far'(r)/r inside r_c
     # Cell list with cell size `cell` (r_c / 2): visit only the x-y columns within r_c of q and,
     # in each, the contiguous run of z cells spanning [qz - r_c, qz + r_c].
     rc2 = rc * rc
@@ -240,20 +244,30 @@ def _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
             ddx = max(clo[0] + ax * cell - qx, qx - (clo[0] + (ax + 1) * cell), 0.0)
             for ay in range(y0, y1 + 1):
                 ddy = max(clo[1] + ay * cell - qy, qy - (clo[1] + (ay + 1) * cell), 0.0)
-                if ddx * ddx + ddy * ddy >= rc2:
+                d2 = ddx * ddx + ddy * ddy
+                if d2 >= rc2:
+                    continue
+                # z run of this column: only the cells the sphere of radius r_c reaches
+                rz = np.sqrt(rc2 - d2)
+                za = max(int(np.floor((qz - rz - clo[2]) / cell)), z0)
+                zb = min(int(np.floor((qz + rz - clo[2]) / cell)), z1)
+                if za > zb:
                     continue
                 base = (ax * dims[1] + ay) * dims[2]
-                for j in range(start[base + z0], start[base + z1 + 1]):
-                    ex = qx - Bs[j, 0]
-                    ey = qy - Bs[j, 1]
-                    ez = qz - Bs[j, 2]
+                # Branch-free body over a contiguous run of SoA coordinates: LLVM vectorises it.
+                # Inside r_c, K_far is a polynomial in r², so only K itself needs the square root.
+                for j in range(start[base + za], start[base + zb + 1]):
+                    ex = qx - Bs[0, j]
+                    ey = qy - Bs[1, j]
+                    ez = qz - Bs[2, j]
                     r2 = ex * ex + ey * ey + ez * ez
-                    if r2 >= rc2:
-                        continue
+                    inside = r2 < rc2
                     r = np.sqrt(r2)
-                    s += wbs[j] * (k_exact(r, eps) - k_far(r, eps, rc))
-                    if want_grad and r > 1e-300:
-                        f = wbs[j] * (dk_exact(r, eps) - dk_far(r, eps, rc)) / r
+                    inv = 1.0 / (eps + r)
+                    w = wbs[j] if inside else 0.0
+                    s += w * (inv - (kc - (r2 - rc2) * c1))
+                    if want_grad:
+                        f = w * (c2 - inv * inv / max(r, 1e-12))
                         dx += f * ex
                         dy += f * ey
                         dz += f * ez

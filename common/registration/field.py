@@ -12,6 +12,14 @@ The kernel is split, as in particle-particle/particle-mesh (P³M) solvers, into
 * a compact near part K − K_far (zero beyond r_c = near_cells·h), summed exactly over the neighbours
   of each query point found through a cell list of B with cell size r_c.
 
+Measured (bench/registration.py, deep street scene, n = p = 5,000, ε = 0.1 m, 2 shared cores under
+load 5–11 from other work, so wall ≈ 2–3× CPU): exact δ 1.08 s in numpy float64, 0.11 s with the
+parallel numba sum; this field: build 25–40 ms, δ at A's 5,000 points 11 ms CPU with the default
+near_cells=2 and 3.8 ms CPU with near_cells=0.75, |fast − exact| / exact = 0.04–0.05 % either way.
+The cost is the near sum: flies spread evenly over the image are packed near the camera (≈ 35
+neighbours within r_c = 0.5 m, ≈ 180 within 1.4 m), and the per-query column scan of the cell list
+dominates at small r_c.  A nested finer grid over the dense region is the next step to reach 1 ms.
+
 Grid extent: the grid covers B and the `bounds` the caller will evaluate at (for registration, every
 place A's points can reach under the search window), padded by r_c.  A point outside the grid is
 still answered, by the exact sum over all of B, so coverage only affects speed, never correctness.
@@ -123,7 +131,7 @@ class PseudoDistanceField:
         self.cell_lo = self.B.min(0)
         self.cell_dims = (np.floor((self.B.max(0) - self.cell_lo) / self.cell).astype(np.int64) + 1)
         order, self.start = _kernels.build_cells(self.B, self.cell_lo, self.cell, self.cell_dims)
-        self.B_sorted = np.ascontiguousarray(self.B[order])
+        self.B_sorted = np.ascontiguousarray(self.B[order].T)  # (3, p): SoA for the vector loop
         self.wb_sorted = np.ascontiguousarray(self.wb[order])
         self.weight_sum = float(self.wb.sum())
         self.last_outside = 0

@@ -38,7 +38,7 @@ class LocalCorrelationField:
                                   f"{np.round(span * self.cell, 1).tolist()} m")
         self.cell_dims = np.floor(span).astype(np.int64) + 1
         order, self.start = _kernels.build_cells(self.B, self.cell_lo, self.cell, self.cell_dims)
-        self.B_sorted = np.ascontiguousarray(self.B[order])
+        self.B_sorted = np.ascontiguousarray(self.B[order].T)  # (3, p): SoA for the vector loop
         self.wb_sorted = np.ascontiguousarray(self.wb[order])
         self.last_outside = 0
 
