@@ -121,8 +121,8 @@ def _bilinear(texels, off, w, h, x, y, wrap, weight):
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
-          origin, normal, u_dual, v_dual, size, tex, decal,
-          texels, toff, tw, th, nlev, period, emissive,
+          origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
+          texels, toff, tw, th, nlev, emissive,
           ambient, sun, sun_int, lights, sky, decal_bias,
           out_rad, out_depth, accumulate):
     Q = origin.shape[0]
@@ -212,26 +212,22 @@ def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
             if not accumulate:
                 out_depth[j, i] = bt
             tid = tex[bq]
-            if period[tid, 0] > 0:
-                s = ba * size[bq, 0] / period[tid, 0]
-                tt = bb * size[bq, 1] / period[tid, 1]
-                tpm = max(tw[tid, 0] / period[tid, 0], th[tid, 0] / period[tid, 1])
-                wrap = True
-            else:
-                s = ba
-                tt = bb
-                tpm = max(tw[tid, 0] / size[bq, 0], th[tid, 0] / size[bq, 1])
-                wrap = False
-            cos_t = abs(bden) / dn
-            foot = bt * dn / (fx * np.sqrt(max(cos_t, 0.02)))
-            lod = _fast_log2(max(foot * tpm, 1.0))
+            s = ba * tex_scale[bq, 0]
+            tt = bb * tex_scale[bq, 1]
+            wrap = tiles[bq]
+            # Mip level = log2 of the pixel footprint in texels: distance·density/fx, widened by
+            # 1/sqrt(cos incidence) (geometric mean of the along- and across-slant footprints).
+            # Squared to avoid a square root: lod = ½·log2(t²·dn³·(density/fx)² / max(|d·n|, 0.02·dn)).
+            cden = max(abs(bden), 0.02 * dn)
+            x2 = bt * bt * dn * dn * dn * texel_density[bq] * texel_density[bq] * inv_fx * inv_fx / cden
+            lod = 0.5 * _fast_log2(max(x2, 1.0))
             maxl = nlev[tid] - 1
             if lod > maxl:
                 lod = float(maxl)
             l0 = int(lod)
-            # "Brilinear": a single bilinear level except near the middle between two levels, where the
-            # two are blended (saves most second-level fetches, no visible level seams).
-            fr = min(max((lod - l0 - 0.25) * 2.0, 0.0), 1.0)
+            # "Brilinear": a single bilinear level except in the middle 30 % between two levels, where
+            # the two are blended (saves most second-level fetches, no visible level seams).
+            fr = min(max((lod - l0 - 0.35) * (1.0 / 0.3), 0.0), 1.0)
             l1 = min(l0 + 1, maxl)
             # Shading: facing normal towards the camera.
             sg = -1.0 if bden > 0 else 1.0
@@ -339,8 +335,8 @@ class Renderer:
         visible = np.flatnonzero(bbox[:, 0] <= bbox[:, 1])
         order = visible[np.argsort(zmin[visible], kind="stable")]
         _cast(c, R_wc, self.fx, self.fy, self.cx, self.cy, self.W, self.H, bbox, order, zmin,
-              q.origin, q.normal, q.u_dual, q.v_dual, q.size, q.tex, q.decal,
-              a.texels, a.offset, a.width, a.height, a.n_levels, a.period_m, a.emissive,
+              q.origin, q.normal, q.u_dual, q.v_dual, q.tex, q.decal, q.tex_scale, q.tiles, q.texel_density,
+              a.texels, a.offset, a.width, a.height, a.n_levels, a.emissive,
               float(self.world.scenario.lighting.ambient), self._sun,
               float(self.world.scenario.lighting.sun_intensity), self._lights, self._sky, DECAL_BIAS_M,
               out_rad, out_depth, accumulate)

@@ -22,7 +22,9 @@ class QuadArrays:
 
     origin/u/v (Q,3) corners; normal (Q,3) unit u×v; u_dual/v_dual (Q,3) = u/|u|², v/|v|² (so
     a = (p−origin)·u_dual ∈ [0,1] inside); size (Q,2) = |u|, |v| metres; tex (Q,) int64 atlas index;
-    decal (Q,) bool (one-sided, depth-biased); solid (Q,) bool (obstacle).
+    decal (Q,) bool (one-sided, depth-biased); solid (Q,) bool (obstacle); tex_scale (Q,2) maps the
+    quad coordinates (a, b) to texture coordinates (tiling textures repeat, stretched ones span [0,1]);
+    tiles (Q,) bool wrap vs clamp; texel_density (Q,) level-0 texels per metre on the surface.
     """
     origin: np.ndarray
     u: np.ndarray
@@ -34,6 +36,9 @@ class QuadArrays:
     tex: np.ndarray
     decal: np.ndarray
     solid: np.ndarray
+    tex_scale: np.ndarray
+    tiles: np.ndarray
+    texel_density: np.ndarray
 
     def __len__(self):
         return len(self.tex)
@@ -79,10 +84,18 @@ class World:
         N = np.cross(U, V)
         N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
         lu, lv = np.linalg.norm(U, axis=1), np.linalg.norm(V, axis=1)
+        tex = np.array(tex_ids, np.int64).reshape(-1)
+        a = self.atlas
+        tiles = a.period_m[tex, 0] > 0 if len(tex) else np.zeros(0, bool)
+        span = np.where(tiles[:, None], a.period_m[tex], np.stack([lu, lv], 1)) if len(tex) else np.zeros((0, 2))
+        tex_scale = np.where(tiles[:, None], np.stack([lu, lv], 1) / np.where(tiles[:, None], span, 1.0), 1.0)
+        density = np.maximum(a.width[tex, 0] / span[:, 0], a.height[tex, 0] / span[:, 1]) if len(tex) else np.zeros(0)
         self.quads = QuadArrays(
             origin=O, u=U, v=V, normal=N, u_dual=U / lu[:, None] ** 2, v_dual=V / lv[:, None] ** 2,
-            size=np.stack([lu, lv], 1), tex=np.array(tex_ids, np.int64),
-            decal=np.array([s.decal for s in surfaces], bool), solid=np.array([s.solid for s in surfaces], bool))
+            size=np.stack([lu, lv], 1), tex=tex,
+            decal=np.array([s.decal for s in surfaces], bool), solid=np.array([s.solid for s in surfaces], bool),
+            tex_scale=np.ascontiguousarray(tex_scale, float), tiles=np.ascontiguousarray(tiles, bool),
+            texel_density=np.ascontiguousarray(density, float))
         # Box footprints (for "inside an obstacle" tests): (B, 4, 2) corner polygons, with z ranges.
         fp, zr = [], []
         for b in scenario.boxes:
