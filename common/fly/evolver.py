@@ -37,7 +37,8 @@ from common.fly.sampling import disparity_bounds, sample_flies
 
 FitnessTerm = Callable[[np.ndarray], np.ndarray]
 
-_MATE_REACH = 4
+_MATE_REACH = 8          # crossover mates are within this many places in the cell-ordered population
+_EXCHANGE_BEST_OF = 8    # depth exchange copies the fittest of this many such neighbours
 _NOISE_REFRESH_FRAMES = 30
 _STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure  # crossover mates are within this many places in the cell-ordered population
 
@@ -238,7 +239,12 @@ class FlyEvolver:
                       else np.zeros((0, 3), np.float32))
         child = np.empty((m, 3), np.float32)
         sigma = np.empty(m, np.float32)
-        make_offspring(ops, parents, self._mates(parents), self._mates(parents), self._pos, parent_sigma,
+        mates1 = self._mates(parents)
+        if _EXCHANGE_BEST_OF > 1:   # depth exchange copies the fittest of a few neighbours
+            exc = np.nonzero(ops == EXCHANGE)[0]
+            cand = np.stack([mates1[exc]] + [self._mates(parents[exc]) for _ in range(_EXCHANGE_BEST_OF - 1)], 1)
+            mates1[exc] = cand[np.arange(len(exc)), np.argmax(self._fit[cand], axis=1)]
+        make_offspring(ops, parents, mates1, self._mates(parents), self._pos, parent_sigma,
                        rng.standard_normal((m, 3)), rng.random((m, 3)), immigrants, self._cam,
                        float(c.mutation_sigma_px), float(self._d_range[0]), float(self._d_range[1]),
                        float(c.mutation_sigma_disparity_min), float(c.mutation_sigma_disparity), child, sigma)
@@ -256,7 +262,14 @@ class FlyEvolver:
             ops = self._operators(m)
             # Parents in population (cell) order: children land near them, so the batch is evaluated in
             # image order too (cache-friendly); the operators are iid, so pairing stays random.
-            parents = np.sort(self._select_parents(shared, m))
+            parents = self._select_parents(shared, m)
+            if c.crowding and m == n:
+                # Local operators (mutation, depth exchange) refine the parent in its own niche: every fly
+                # gets its turn once per generation instead of the fittest getting most of them.
+                local = (ops == MUTATION) | (ops == EXCHANGE)
+                parents = np.where(local, np.arange(n), parents)
+            order = np.argsort(parents, kind="stable")
+            parents, ops = parents[order], ops[order]
             child, sigma = self._make_offspring(parents, ops, self._sigma_d[parents])
             fit = self.evaluate(child)
             g = self.sharing
