@@ -40,7 +40,7 @@ FitnessTerm = Callable[[np.ndarray], np.ndarray]
 _MATE_REACH = 8          # crossover mates are within this many places in the cell-ordered population
 _EXCHANGE_BEST_OF = 8    # depth exchange copies the fittest of this many such neighbours
 _NOISE_REFRESH_FRAMES = 30
-_STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure  # crossover mates are within this many places in the cell-ordered population
+_STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure
 
 
 class FitnessTermError(ValueError):
