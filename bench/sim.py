@@ -3,13 +3,14 @@
 Drives the scripted corridor path and renders a frame at every camera-due event, one process, as the
 sim service would.  Prints figures; with --json the last stdout line is one JSON object:
 ``frames_per_s`` (wall clock), ``cpu_ms_per_frame`` (process CPU time — robust to other load on the
-machine), ``sim_step_ms_per_frame`` (motion + odometry + sonar between frames), ``compile_s`` (first
+machine; with NUMBA_NUM_THREADS=1 it is the single-core cost), ``load_avg_1min`` (how busy the machine was), ``sim_step_ms_per_frame`` (motion + odometry + sonar between frames), ``compile_s`` (first
 render, numba JIT or cache load), image size and thread count.  ``--png`` saves one left/right pair.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -70,6 +71,7 @@ def main(argv=None) -> int:
         "sim_step_ms_per_frame": round(1000 * step_wall / frames, 2),
         "compile_s": round(compile_s, 2),
         "threads": numba.get_num_threads(),
+        "load_avg_1min": round(os.getloadavg()[0], 2),  # other processes sharing the cores
         "quads": len(sim.world.quads),
     }
     for k, v in result.items():
