@@ -7,7 +7,7 @@ from common.fly import (EvolverConfig, EvolverConfigError, FitnessTermError, Fly
                         inlier_fraction)
 from common.fly.operators import project_uvd
 from common.geometry import make_transform, rot_y, transform_points
-from tests.fly_synthetic import textured_plane_pair
+from common.fly.synthetic import textured_plane_pair
 
 SMALL = dict(population=600, depth_min=0.5, depth_max=np.inf)
 

@@ -8,7 +8,7 @@ from common.fly.fitness import OUTSIDE_FITNESS, ImageError, image_fitness, prepa
 from common.fly.operators import (SharingGrid, backproject_uvd, crossover2, crossover3, exchange_depth, mutate,
                                   project_uvd)
 from common.fly.sampling import SamplingError, sample_flies
-from tests.fly_synthetic import textured_plane_pair
+from common.fly.synthetic import textured_plane_pair
 
 
 @pytest.fixture

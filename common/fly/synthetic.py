@@ -1,4 +1,4 @@
-"""Small synthetic stereo pairs for the fly tests: a textured fronto-parallel plane at a known depth."""
+"""Small synthetic stereo pairs (tests, examples): a textured fronto-parallel plane at a known depth."""
 from __future__ import annotations
 
 import cv2
