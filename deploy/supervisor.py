@@ -349,6 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="folder for everything the run writes (default: runs/<date-time>)")
     p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE",
                    help="set a launch-file variable used as {NAME} in service args")
+    p.add_argument("--viewer", action="store_true",
+                   help="serve the live Rerun viewer (sets grpc_port=9876 and web_port=9090 for the bridge; "
+                        "open http://127.0.0.1:9090)")
     add_bus_arguments(p)
     return p
 
@@ -361,6 +364,8 @@ def main(argv=None) -> int:
     except LaunchError as e:
         print(f"flyslam run: {e}", file=sys.stderr)
         return 2
+    if args.viewer:
+        launch.vars.update(grpc_port="9876", web_port="9090")
     for item in args.var:
         name, sep, value = item.partition("=")
         if not sep:
