@@ -42,7 +42,6 @@ class PreparedFrame:
     noise_sigma: float      # grey-level noise std used for the floor
     inv_floor: float        # 1 / F
     weights: np.ndarray     # N×N float32 window weights, summing to 1 / C
-    guide: np.ndarray       # H×W float32 left grey image (before mean removal), for adaptive support
 
 
 def _as_float_image(img: np.ndarray, which: str) -> np.ndarray:
@@ -224,15 +223,14 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     sat2 = np.float32((gradient_saturation * sigma) ** 2)
     G = energy / (energy + sat2) if sat2 > 0 else np.ones_like(energy)
     return PreparedFrame(np.ascontiguousarray(L), np.ascontiguousarray(R), np.ascontiguousarray(G), sigma,
-                         1.0 / floor, window_weights(neighbourhood, C, window_sigma),
-                         np.ascontiguousarray(grey, dtype=np.float32))
+                         1.0 / floor, window_weights(neighbourhood, C, window_sigma))
 
 
 _BLOCK = 64  # flies per parallel work item (one scratch buffer each)
 
 
-def _fitness_kernel_py(L, R, G, guide, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical,
-                    inv_floor, inv_gamma, wexp, out):
+def _fitness_kernel_py(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, subpixel, vertical, inv_floor,
+                       wexp, out):
     """L, R: H×(W·C) float32 (rows of interleaved colours); wexp: nw×(nw·C) per-sample weights."""
     H = L.shape[0]
     W = L.shape[1] // C
@@ -299,32 +297,12 @@ def _fitness_kernel_py(L, R, G, guide, pos, fx, fy, cxl, cxr, cy, baseline, half
                     if yr + nw > H:
                         out[k] = -np.inf
                         continue
-                    if inv_gamma > 0:
-                        # Adaptive support: window pixels unlike the centre (in the left guide image)
-                        # count less, so a window straddling a depth edge is judged by its centre's side.
-                        gc = guide[yr + half, xn]
-                        wsum = np.float32(0.0)
-                        for j in range(nw):
-                            y = yr + j
-                            for i in range(nw):
-                                t = (guide[y, xn - half + i] - gc) * inv_gamma
-                                w = wexp[j, i * C] / (np.float32(1.0) + t * t)
-                                s = np.float32(0.0)
-                                for c in range(C):
-                                    p = i * C + c
-                                    b0 = R[y, orr + p]
-                                    d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
-                                    s += d * d
-                                acc += w * s
-                                wsum += w
-                        acc = acc / (wsum * C)
-                    else:
-                        for j in range(nw):
-                            y = yr + j
-                            for p in range(rowlen):
-                                b0 = R[y, orr + p]
-                                d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
-                                acc += wexp[j, p] * d * d
+                    for j in range(nw):
+                        y = yr + j
+                        for p in range(rowlen):
+                            b0 = R[y, orr + p]
+                            d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
+                            acc += wexp[j, p] * d * d
                 g = G[int(np.floor(v + 0.5)), int(np.floor(ul + 0.5))]
             else:
                 xl0 = int(np.floor(ul + 0.5))
@@ -353,13 +331,13 @@ _fitness_kernel_serial = numba.njit(parallel=False, cache=True, fastmath=True)(_
 
 
 def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.ndarray,
-                  subpixel: bool = True, vertical: bool = False, support_gamma: float | None = None,
-                  out: np.ndarray | None = None, parallel: bool = True) -> np.ndarray:
+                  subpixel: bool = True, vertical: bool = False, out: np.ndarray | None = None,
+                  parallel: bool = True) -> np.ndarray:
     """(N,) float32 image fitness of (N, 3) left-optical positions on a prepared frame.
 
     ``subpixel``: right window sampled at the exact disparity (linear along the epipolar line), left at
     the nearest pixel; ``vertical`` additionally interpolates both windows bilinearly; neither: nearest
-    pixels.  ``support_gamma`` (grey levels) enables colour-adaptive support weights (slower, optional).
+    pixels.
     ``parallel``: use all cores (numba prange) or only the calling thread.
     """
     pos = np.ascontiguousarray(positions, dtype=np.float32)
@@ -372,7 +350,7 @@ def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.
     wexp = np.ascontiguousarray(np.repeat(frame.weights, C, axis=1))
     kernel = _fitness_kernel_parallel if parallel else _fitness_kernel_serial
     kernel(frame.left.reshape(H, W * C), frame.right.reshape(H, W * C), frame.gradient_norm,
-                    frame.guide, pos, calib.fx, calib.fy, calib.cx_left, calib.cx_right, calib.cy,
+                    pos, calib.fx, calib.fy, calib.cx_left, calib.cx_right, calib.cy,
                     calib.baseline, half, C, bool(subpixel), bool(vertical), np.float32(frame.inv_floor),
-                    np.float32(1.0 / support_gamma if support_gamma else 0.0), wexp, out)
+                    wexp, out)
     return out
