@@ -10,7 +10,7 @@ The kernel is split, as in particle-particle/particle-mesh (P³M) solvers, into
   read back by trilinear interpolation (its gradient by trilinear interpolation of central
   differences of the grid);
 * a compact near part K − K_far (zero beyond r_c = near_cells·h), summed exactly over the neighbours
-  of each query point found through a cell list of B with cell size r_c.
+  of each query point found through a z-sorted x-y column list of B (column width r_c).
 
 Measured (bench/registration.py, deep street scene, n = p = 5,000, ε = 0.1 m, 2 shared cores under
 load 5–11 from other work, so wall ≈ 2–3× CPU): exact δ 1.08 s in numpy float64, 0.11 s with the
@@ -126,10 +126,13 @@ class PseudoDistanceField:
         self.grid = np.ascontiguousarray(conv[:self.shape[0], :self.shape[1], :self.shape[2]],
                                          dtype=np.float64)
 
-        # Near field: cell list of B with cell size r_c / 2, B and its weights copied in cell order.
-        self.cell = self.rc / 2
+        # Near field: x-y column list of B (column width r_c, z-sorted inside), B and its weights
+        # copied in that order.  Narrower columns (r_c/2, r_c/1.5) measured no faster: per-column
+        # overhead outweighs the fewer candidates.
+        self.cell = self.rc  # column width of the near-field column list
         self.cell_lo = self.B.min(0)
-        self.cell_dims = (np.floor((self.B.max(0) - self.cell_lo) / self.cell).astype(np.int64) + 1)
+        self.cell_dims = np.floor((self.B.max(0) - self.cell_lo) / self.cell).astype(np.int64) + 1
+        self.cell_dims[2] = 1  # columns: x-y only
         order, self.start = _kernels.build_cells(self.B, self.cell_lo, self.cell, self.cell_dims)
         self.B_sorted = np.ascontiguousarray(self.B[order].T)  # (3, p): SoA for the vector loop
         self.wb_sorted = np.ascontiguousarray(self.wb[order])

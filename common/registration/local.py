@@ -30,13 +30,14 @@ class LocalCorrelationField:
             raise PopulationError(f"radius must be a positive distance, got {radius}")
         self.wb = as_weights(weights_b, len(self.B), "weights_b")
         self.weight_sum = float(self.wb.sum())
-        self.cell = self.rc / 2
+        self.cell = self.rc  # column width of the near-field column list
         self.cell_lo = self.B.min(0)
         span = (self.B.max(0) - self.cell_lo) / self.cell
-        if np.prod(span + 1) > 5e7:
+        if np.prod(span[:2] + 1) > 5e7:
             raise PopulationError(f"radius {radius} m is too small for a population spanning "
                                   f"{np.round(span * self.cell, 1).tolist()} m")
         self.cell_dims = np.floor(span).astype(np.int64) + 1
+        self.cell_dims[2] = 1  # columns: x-y only
         order, self.start = _kernels.build_cells(self.B, self.cell_lo, self.cell, self.cell_dims)
         self.B_sorted = np.ascontiguousarray(self.B[order].T)  # (3, p): SoA for the vector loop
         self.wb_sorted = np.ascontiguousarray(self.wb[order])
