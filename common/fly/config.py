@@ -35,12 +35,15 @@ class EvolverConfig:
     # Gaussian mutation in (u_left, v, disparity) space, i.e. scaled to stereo depth uncertainty.
     mutation_sigma_px: float = 0.7    # image-plane step (pixels) of the left projection
     mutation_sigma_disparity: float = 4.0   # initial disparity step (pixels)
-    adaptive_mutation: bool = True    # self-adaptive per-fly disparity step (log-normal, inherited)
+    adaptive_mutation: bool = True    # per-fly disparity step: steady state ×1.5 after a winning mutation,
+                                      # ×0.85 after a losing one; generational: log-normal self-adaptation
     mutation_sigma_disparity_min: float = 0.05
     # Steady state: a mutated child competes with its parent (deterministic crowding) — keeps every fly
     # in its own image niche; other children replace the loser of a reverse tournament.
+    # Local children (mutation, exchange) come from every fly once per generation.
     crowding: bool = True
-    batch_fraction: float = 1.0       # steady state: offspring made per vectorised batch, as a fraction of N
+    batch_fraction: float = 1.0       # steady state: offspring made per batch, as a fraction of N (children of
+                                      # a batch are evaluated together, then inserted one at a time)
     # 2-D sharing over a grid of cells in the left image.
     sharing_radius_px: float | None = None   # cell size; None = sqrt(W·H / population)
     sharing_strength: float = 1.0            # 0 disables sharing
@@ -49,9 +52,11 @@ class EvolverConfig:
     subpixel: bool = True             # sub-pixel disparity: right window interpolated along the epipolar
                                       # line at (nearest left pixel − exact disparity); else nearest pixels
     subpixel_vertical: bool = False   # full bilinear sampling of both windows (slower, same disparity)
-    noise_sigma: float | None = None  # grey-level noise std; None = estimated per frame (Immerkær)
+    noise_sigma: float | None = None  # grey-level noise std; None = estimated (Immerkær, flattest 30 % of
+                                      # pixels) on the first frame and every 30 frames after
     ssd_floor_scale: float = 2.0      # F = ssd_floor_scale · 2·σ²  (2σ² = variance of a noisy difference)
-    gradient_saturation: float = 6.0  # G = g²/(g² + (k·σ_eff)²) with g the window's RMS gradient
+    gradient_saturation: float = 6.0  # G = g²/(g² + (k·σ)²), g² the mean squared x gradient of the least
+                                      # textured half-window
     window_sigma: float | None = 1.2  # Gaussian weighting of the window (px), favours the centre
                                       # (thin structures, depth edges); None = flat
     mean_removal_px: int | None = 15  # subtract each image's local mean over this box (odd px) before
@@ -96,6 +101,8 @@ class EvolverConfig:
                 bad(f"{name} must be finite and ≥ 0, got {v}")
         if not 0 < self.batch_fraction <= 1:
             bad(f"batch_fraction must be in (0, 1], got {self.batch_fraction}")
+        if int(self.parallel_min_flies) != self.parallel_min_flies or self.parallel_min_flies < 1:
+            bad(f"parallel_min_flies must be a positive integer, got {self.parallel_min_flies}")
         if self.sharing_radius_px is not None and not self.sharing_radius_px > 0:
             bad(f"sharing_radius_px must be positive or None, got {self.sharing_radius_px}")
         if self.sharing_strength < 0:
