@@ -223,10 +223,11 @@ class FlyEvolver:
         top = np.argpartition(-shared, k - 1)[:k]
         return top[self.rng.integers(0, k, m)]
 
-    def _mates(self, parents: np.ndarray) -> np.ndarray:
-        """A mate for each parent among its neighbours in the cell-ordered population."""
+    def _mates(self, parents: np.ndarray, k: int = 1) -> np.ndarray:
+        """(k, m) mates for m parents among their neighbours in the cell-ordered population (±1…±R places)."""
         n = len(self._pos)
-        off = self.rng.integers(1, _MATE_REACH + 1, len(parents)) * self.rng.choice((-1, 1), len(parents))
+        off = self.rng.integers(-_MATE_REACH, _MATE_REACH, (k, len(parents)))
+        off[off >= 0] += 1
         mate = parents + off
         return np.where((mate < 0) | (mate >= n), parents - off, mate)
 
@@ -239,12 +240,13 @@ class FlyEvolver:
                       else np.zeros((0, 3), np.float32))
         child = np.empty((m, 3), np.float32)
         sigma = np.empty(m, np.float32)
-        mates1 = self._mates(parents)
-        if _EXCHANGE_BEST_OF > 1:   # depth exchange copies the fittest of a few neighbours
-            exc = np.nonzero(ops == EXCHANGE)[0]
-            cand = np.stack([mates1[exc]] + [self._mates(parents[exc]) for _ in range(_EXCHANGE_BEST_OF - 1)], 1)
-            mates1[exc] = cand[np.arange(len(exc)), np.argmax(self._fit[cand], axis=1)]
-        make_offspring(ops, parents, mates1, self._mates(parents), self._pos, parent_sigma,
+        mates = self._mates(parents, 1 + _EXCHANGE_BEST_OF)
+        mates1, mates2 = mates[0], mates[1]
+        exc = np.nonzero(ops == EXCHANGE)[0]
+        if len(exc) and _EXCHANGE_BEST_OF > 1:   # depth exchange copies the fittest of a few neighbours
+            cand = mates[1:, exc]
+            mates1[exc] = cand[np.argmax(self._fit[cand], axis=0), np.arange(len(exc))]
+        make_offspring(ops, parents, mates1, mates2, self._pos, parent_sigma,
                        rng.standard_normal((m, 3)), rng.random((m, 3)), immigrants, self._cam,
                        float(c.mutation_sigma_px), float(self._d_range[0]), float(self._d_range[1]),
                        float(c.mutation_sigma_disparity_min), float(c.mutation_sigma_disparity), child, sigma)
