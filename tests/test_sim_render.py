@@ -145,3 +145,17 @@ def test_sgbm_on_the_rendered_corridor_agrees_with_the_ground_truth_depth():
     assert valid.mean() > 0.5
     assert np.mean(err < 1.0) > 0.8
     assert np.median(err) < 0.5
+
+
+@pytest.mark.parametrize("flip, visible", [(False, True), (True, False)])
+def test_decals_show_on_their_front_side_only(flip, visible):
+    wall = {"from": [3.0, 5.0], "to": [3.0, -5.0], "z": [0.0, 3.0],
+            "texture": {"kind": "paint", "color": [200, 200, 200], "contrast": 0.0}}
+    poster = {"from": [3.0, 0.5], "to": [3.0, -0.5], "z": [0.2, 0.9], "flip": flip,
+              "texture": {"kind": "paint", "color": [20, 20, 200], "contrast": 0.0}}
+    scn = parse_scenario({"robot": {"start": [0.0, 0.0, 0.0]}, "walls": [wall], "posters": [poster],
+                          "camera": {"height_m": 0.5, "forward_m": 0.0}}, "decal")
+    f = Simulator(scn, seed=0, width=64, height=48).render()
+    centre = f.left[24, 32].astype(int)
+    assert (centre[2] - centre[0] > 100) == visible   # blue poster vs grey wall
+    assert f.depth[24, 32] == pytest.approx(3.0, abs=1e-4)  # the decal lies on the wall

@@ -18,6 +18,7 @@ Top-level layout (all lengths in metres, angles in degrees, map frame: z up, flo
     [[doors]] / [[posters]]  from, to, z, texture   # flat decals on a wall, visible from the LEFT of
                                                     # from→to (set flip = true for the other side)
     [[panels]]  origin = [x,y,z]  u = [..3]  v = [..3]  texture  solid = false  decal = false
+                # a decal panel is one-sided: visible from the side u × v points to
     [[boxes]]   center = [x, y]  size = [sx, sy, sz]  yaw = 0  z0 = 0  texture = ...
     [[lights]]  position = [x, y, z]  intensity = 0.4  radius = 3.0     # point lights (no shadows)
     [path]  mode = "waypoints" | "poses" | "velocity"  ...             # scripted motion (optional)
