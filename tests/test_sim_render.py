@@ -151,7 +151,8 @@ def test_sgbm_on_the_rendered_corridor_agrees_with_the_ground_truth_depth():
 def test_decals_show_on_their_front_side_only(flip, visible):
     wall = {"from": [3.0, 5.0], "to": [3.0, -5.0], "z": [0.0, 3.0],
             "texture": {"kind": "paint", "color": [200, 200, 200], "contrast": 0.0}}
-    poster = {"from": [3.0, 0.5], "to": [3.0, -0.5], "z": [0.2, 0.9], "flip": flip,
+    # from → to runs along +y, so the front (left of it) faces −x, towards the robot.
+    poster = {"from": [3.0, -0.5], "to": [3.0, 0.5], "z": [0.2, 0.9], "flip": flip,
               "texture": {"kind": "paint", "color": [20, 20, 200], "contrast": 0.0}}
     scn = parse_scenario({"robot": {"start": [0.0, 0.0, 0.0]}, "walls": [wall], "posters": [poster],
                           "camera": {"height_m": 0.5, "forward_m": 0.0}}, "decal")
