@@ -32,7 +32,13 @@ and it is large along directions where δ is flat.  The sum runs over A's flies 
 carry the same kind of noise and, for populations of similar size, contribute an equal term, hence
 a factor 2.  It still treats flies as independent and ignores model bias, so it is optimistic: on
 the deep street (bench/registration_variants.py) the median NEES eᵀΣ⁻¹e of the default StereoModel
-registration was ≈ 7–15 instead of 3 (standard deviations ≈ 2× too small) — inflate before fusing.
+registration was ≈ 5–15 instead of 3 (standard deviations ≈ 1.5–2× too small), and 25–50 for the
+paper's δ, whose error there is mostly bias — inflate before fusing.
+
+Speed (bench/registration.py, 5,000 flies, the shared 2-core machine under load): ≈ 70 ms CPU
+(140 ms wall) for a planar registration with the paper's δ, ≈ 100 ms CPU with StereoModel, ≈ 200 ms
+CPU for 6-DoF.  The FFT build of B's field (25–40 ms) and ≈ 40 evaluations of the full field on
+1,000 flies of A dominate; `max_points` trades accuracy for time.
 
 Failures (``res.ok`` False with ``res.reason``; never an exception for well-formed input): too few
 flies; a minimum on the window boundary; a Hessian that is not positive definite; a flat minimum (the
@@ -424,8 +430,10 @@ class StereoModel:
         delta, footprint × depth weights       0.15     0.30    0.95°   0
         local                                  0.59     0.97    2.61°   8
         local, footprint                       0.48     0.84    0.52°   8
-        local, footprint × depth   (default)   0.074    0.12    0.39°   2
-        local, footprint × depth, co-visible   0.14     0.32    0.25°   3
+        local, footprint × depth               0.074    0.12    0.39°   2
+        local, footprint × depth, co-visible   0.087    0.28    0.15°   2   (2 passes, 1.5× the time)
+        the default: local, footprint × depth, 0.090    0.21    0.57°   2   (thin_b: 30 % less time)
+          B thinned by Russian roulette
 
     Why: flies spread evenly over the image are 400× denser per m² at 2 m than at 40 m and that
     pattern moves with the camera, pulling both objectives towards zero motion (footprint weights
