@@ -142,3 +142,31 @@ def test_state_is_read_only_and_anytime():
 def test_bad_configuration_is_refused(bad):
     with pytest.raises(EvolverConfigError):
         EvolverConfig(**bad)
+
+
+def test_kernel_chooser_prefers_the_cheaper_kernel_and_keeps_checking():
+    from common.fly.threads import KernelChooser
+
+    ch = KernelChooser(explore_every=4)
+    cost = {True: 2e-3, False: 1e-3}          # the parallel kernel is currently the slower one
+    used = []
+    for _ in range(40):
+        p = ch.choose()
+        used.append(p)
+        ch.record(p, cost[p], 1)
+    assert used[:2] == [True, False]          # each measured once first
+    assert used[2:].count(False) > 25 and used[2:].count(True) >= 5   # mostly serial, still exploring
+    cost = {True: 1e-4, False: 1e-3}          # load went away: parallel becomes cheaper
+    for _ in range(40):
+        p = ch.choose()
+        used.append(p)
+        ch.record(p, cost[p], 1)
+    assert used[-10:].count(True) >= 7
+    # Results agree whichever kernel runs.
+    calib, left, right, _ = _plane()
+    for mode in (True, False, "auto"):
+        ev = FlyEvolver(calib, EvolverConfig(parallel=mode, **SMALL), seed=11)
+        ev.set_images(left, right)
+        np.testing.assert_allclose(ev.evaluate(ev.positions), ev.fitness, rtol=1e-6)
+    with pytest.raises(EvolverConfigError, match="parallel"):
+        EvolverConfig(parallel="yes")

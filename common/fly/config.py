@@ -65,9 +65,11 @@ class EvolverConfig:
     gradient_min_half: bool = True    # G from the least textured half-window (see fitness.gradient_energy)
     gradient_epipolar: bool = True    # G from the x gradient only (what constrains disparity); else |∇|²
 
-    # Evaluate batches of at least this many flies on all cores, smaller ones on the calling thread
-    # (a parallel region on a busy shared machine can stall for a scheduler time slice).
-    parallel_min_flies: int = 20000
+    # Fitness kernel threading: True (all cores), False (calling thread) or 'auto' — batches of 1,000 flies
+    # or more go to whichever kernel has lately been cheaper per fly (a parallel region on a busy shared
+    # machine can stall for a scheduler time slice; see common/fly/threads.py).
+    parallel: bool | str = "auto"
+    parallel_min_flies: int = 20000   # with parallel='auto' and the chooser not yet informed: threshold
 
     def __post_init__(self):
         self.validate()
@@ -101,6 +103,8 @@ class EvolverConfig:
                 bad(f"{name} must be finite and ≥ 0, got {v}")
         if not 0 < self.batch_fraction <= 1:
             bad(f"batch_fraction must be in (0, 1], got {self.batch_fraction}")
+        if self.parallel not in (True, False, "auto"):
+            bad(f"parallel must be True, False or 'auto', got {self.parallel!r}")
         if int(self.parallel_min_flies) != self.parallel_min_flies or self.parallel_min_flies < 1:
             bad(f"parallel_min_flies must be a positive integer, got {self.parallel_min_flies}")
         if self.sharing_radius_px is not None and not self.sharing_radius_px > 0:

@@ -34,12 +34,14 @@ from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, pr
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
                                   camera_vector, insert_offspring, make_offspring, project_uvd)
 from common.fly.sampling import disparity_bounds, sample_flies
+from common.fly.threads import KernelChooser
 
 FitnessTerm = Callable[[np.ndarray], np.ndarray]
 
 _MATE_REACH = 8          # crossover mates are within this many places in the cell-ordered population
 _EXCHANGE_BEST_OF = 8    # depth exchange copies the fittest of this many such neighbours
 _NOISE_REFRESH_FRAMES = 30
+_AUTO_MIN_FLIES = 1000   # below this a parallel region is never worth it
 _STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure
 
 
@@ -69,6 +71,7 @@ class FlyEvolver:
         self.sharing = SharingGrid(calib.width, calib.height, cell, config.sharing_strength)
         self._terms: dict[str, tuple[FitnessTerm, float]] = {}
         self._cam = camera_vector(calib)
+        self._chooser = KernelChooser()
         self._frame: PreparedFrame | None = None
         self._noise_sigma: float | None = None
         self._frames_since_noise = 0
@@ -165,8 +168,16 @@ class FlyEvolver:
             raise NoImagesError("no images yet: call set_images() first")
         pos = np.ascontiguousarray(positions, dtype=np.float32)
         c = self.config
-        fit = image_fitness(self._frame, self.calib, pos, subpixel=c.subpixel, vertical=c.subpixel_vertical,
-                            parallel=len(pos) >= c.parallel_min_flies)
+        frame, calib = self._frame, self.calib
+
+        def kernel(parallel: bool) -> np.ndarray:
+            return image_fitness(frame, calib, pos, subpixel=c.subpixel, vertical=c.subpixel_vertical,
+                                 parallel=parallel)
+
+        if c.parallel == "auto" and len(pos) >= _AUTO_MIN_FLIES:
+            fit = self._chooser.run(kernel, len(pos))
+        else:
+            fit = kernel(c.parallel is True or (c.parallel == "auto" and len(pos) >= c.parallel_min_flies))
         for name, (fn, w) in self._terms.items():
             t = np.asarray(fn(pos), dtype=np.float32)
             if t.shape != (len(pos),) or not np.all(np.isfinite(t)):
