@@ -223,22 +223,33 @@ class HarmonicPlanner:
         cells = hk.descent_path(psi, self._state, cell[0] + 1, cell[1] + 1, steps)
         return self.cell_centres(cells[:, 0] - 1, cells[:, 1] - 1)
 
+    def _psi_patch(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """log phi over padded rows r0:r1, cols c0:c1 (clipped to the padded grid, -inf outside)."""
+        hp, wp = self._state.shape
+        out = np.full((r1 - r0, c1 - c0), -np.inf)
+        ra, rb, ca, cb = max(r0, 0), min(r1, hp), max(c0, 0), min(c1, wp)
+        st = self._state[ra:rb, ca:cb]
+        with np.errstate(divide="ignore"):
+            val = self._s[ra:rb, ca:cb] + np.log(self._r[ra:rb, ca:cb])
+        val = np.where(st == hk.BLOCKED, -np.inf, np.where(st == hk.TARGET, 0.0, val))
+        out[ra - r0:rb - r0, ca - c0:cb - c0] = val
+        return out
+
     def _descent_direction(self, x: float, y: float) -> tuple[float, float] | None:
-        """Gradient of log phi at (x, y), bilinear over the four surrounding cell-centre gradients."""
-        psi = np.full(self._state.shape, -np.inf)
-        psi[1:-1, 1:-1] = self.log_phi
+        """Gradient of log phi at (x, y), bilinear over the four surrounding cell-centre gradients
+        (computed on a 4 x 4 patch, so a command costs the same on any grid size)."""
         res = self.cfg.resolution
         fx = (x - self.cfg.origin[0]) / res - 0.5 + 1      # padded continuous column
         fy = (y - self.cfg.origin[1]) / res - 0.5 + 1
         c0, r0 = int(math.floor(fx)), int(math.floor(fy))
+        psi = self._psi_patch(r0 - 1, r0 + 3, c0 - 1, c0 + 3)
         gx = gy = wsum = 0.0
         for dr in (0, 1):
             for dc in (0, 1):
-                r, c = r0 + dr, c0 + dc
-                if not (1 <= r < psi.shape[0] - 1 and 1 <= c < psi.shape[1] - 1) or not np.isfinite(psi[r, c]):
+                if not np.isfinite(psi[1 + dr, 1 + dc]):
                     continue
-                wgt = (1 - abs(fx - c)) * (1 - abs(fy - r))
-                g = _cell_gradient(psi, r, c)
+                wgt = (1 - abs(fx - (c0 + dc))) * (1 - abs(fy - (r0 + dr)))
+                g = _cell_gradient(psi, 1 + dr, 1 + dc)
                 gx += wgt * g[0]
                 gy += wgt * g[1]
                 wsum += wgt
