@@ -66,3 +66,20 @@ def test_stereo_model_recovers_motion_between_independent_deep_views(two_views):
     # The paper's δ on the same data is pulled towards zero motion.
     paper = register_planar(A, B)
     assert np.hypot(*(paper.params[:2] - truth[:2])) > err
+
+
+def test_stereo_model_in_the_body_frame_matches_the_optical_result(two_views):
+    rig, truth, A, B = two_views
+    mounted = scenes.deep_rig()
+    mounted.T_base_camera = make_transform(R_BODY_OPTICAL, [0.3, 0.0, 1.2])
+    T_bc = mounted.T_base_camera
+
+    def to_body(P):
+        return P @ T_bc[:3, :3].T + T_bc[:3, 3]
+    optical = register_planar(A, B, stereo=StereoModel(rig))
+    body = register_planar(to_body(A), to_body(B), plane="body", stereo=StereoModel(mounted))
+    assert body.ok, body.reason
+    # The same motion seen in base_link: f_body = T_base_cam · f_optical · T_cam_base.
+    expected = T_bc @ optical.T @ np.linalg.inv(T_bc)
+    np.testing.assert_allclose(body.T[:3, 3], expected[:3, 3], atol=0.05)
+    assert body.params[2] == pytest.approx(-optical.params[2], abs=np.deg2rad(0.3))
