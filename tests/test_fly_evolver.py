@@ -170,3 +170,26 @@ def test_kernel_chooser_prefers_the_cheaper_kernel_and_keeps_checking():
         np.testing.assert_allclose(ev.evaluate(ev.positions), ev.fitness, rtol=1e-6)
     with pytest.raises(EvolverConfigError, match="parallel"):
         EvolverConfig(parallel="yes")
+
+
+def test_flies_follow_the_robot_motion_into_the_next_frame():
+    """Converged on a plane at disparity 12, the robot drives towards it until it is at disparity 15:
+    moving the flies by the odometry keeps them on the surface in the new frame, before any generation."""
+    calib, left, right, gt12 = _plane(12.0)
+    ev = FlyEvolver(calib, EvolverConfig(**SMALL), seed=12)
+    ev.set_images(left, right)
+    ev.step(40)
+    assert inlier_fraction(ev.positions, ev.fitness, calib, gt12) > 0.8
+    fb = calib.fx * calib.baseline
+    forward = fb / 12.0 - fb / 15.0                     # metres driven along the optical axis
+    T_new_old = make_transform(None, [0.0, 0.0, -forward])
+    _, left15, right15, _ = textured_plane_pair(disparity=15.0, seed=3)
+    gt15 = np.full_like(gt12, 15.0)
+    stay = FlyEvolver(calib, EvolverConfig(**SMALL), seed=12)
+    stay.set_images(left, right)
+    stay.step(40)
+    stay.set_images(left15, right15)                    # no proprioceptive fusion
+    ev.move_flies(T_new_old)
+    ev.set_images(left15, right15)
+    assert inlier_fraction(stay.positions, stay.fitness, calib, gt15) < 0.2
+    assert inlier_fraction(ev.positions, ev.fitness, calib, gt15) > 0.8
