@@ -66,8 +66,8 @@ def test_immigration_catches_a_new_surface():
     ev = FlyEvolver(calib, EvolverConfig(immigration_rate=0.05, **SMALL), seed=4)
     ev.set_images(left, right)
     ev.step(30)
-    _, left2, right2, gt2 = _plane(20.0)
     _, left2, right2, _ = textured_plane_pair(disparity=20.0, seed=9)
+    gt2 = np.full((calib.height, calib.width), 20.0, np.float32)
     ev.set_images(left2, right2)
     assert inlier_fraction(ev.positions, ev.fitness, calib, gt2) < 0.3
     ev.step(40)
@@ -193,3 +193,14 @@ def test_flies_follow_the_robot_motion_into_the_next_frame():
     ev.set_images(left15, right15)
     assert inlier_fraction(stay.positions, stay.fitness, calib, gt15) < 0.2
     assert inlier_fraction(ev.positions, ev.fitness, calib, gt15) > 0.8
+
+
+def test_a_seed_reproduces_a_run():
+    calib, left, right, _ = _plane()
+    runs = []
+    for seed in (21, 21, 22):
+        ev = FlyEvolver(calib, EvolverConfig(**SMALL), seed=seed)
+        ev.set_images(left, right)
+        ev.step(5)
+        runs.append(ev.positions.copy())
+    assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])

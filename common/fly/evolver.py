@@ -9,18 +9,25 @@ Usage (the service layer wraps exactly this)::
     ev.move_flies(T_new_old)          # proprioceptive fusion between frames (robot motion)
     ev.add_fitness_term("sonar", fn, weight)   # fn(positions (N,3) float32) -> (N,) float32
 
-Steady state (default): one *generation* is N offspring (N = population size), made in vectorised
-batches of ``batch_fraction·N``.  Each offspring comes from one operator (mutation, 2- or 3-parent
-barycentric crossover, immigration).  A mutated child competes with its own parent (deterministic
-crowding: every fly keeps its image niche and refines its depth); crossover children replace the loser of
-a reverse tournament when they are fitter; immigrants replace that loser unconditionally (they are how new
-objects get noticed).  Comparisons use the shared fitness (see ``SharingGrid``).
+Steady state (default): one *generation* is N offspring (N = population size), made in batches of
+``batch_fraction·N`` (default one batch) and inserted one at a time.  Each offspring comes from one
+operator (see ``common.fly.operators``): Gaussian mutation in (u, v, disparity), depth exchange (the
+parent's pixel with the disparity of the fittest of a few image neighbours — PatchMatch-like
+propagation), 2- or 3-parent barycentric crossover, or immigration.  Mutation and exchange children come
+from every fly once per generation and compete with their own parent (deterministic crowding: each fly
+keeps its image niche and refines its depth); crossover children come from tournament or elitist parents
+and replace the loser of a reverse tournament when they are fitter; immigrants replace that loser
+unconditionally (they are how new objects get noticed).  Comparisons use the shared fitness (2-D sharing,
+``SharingGrid``).  Depth exchange relies on crowding: in generational mode keep ``exchange_rate`` low.
 
 Generational: every generation builds a whole new population from selected parents; with 'elitist'
 selection the top ``elite_fraction`` survives unchanged.
 
 Population arrays are kept ordered by sharing cell (row-major over the left image), which makes
-fitness evaluation cache-friendly and lets crossover pick mates among image neighbours.
+fitness evaluation cache-friendly and lets the operators pick mates among image neighbours.  The order of
+flies is therefore not stable across ``step`` calls (``move_flies``/``set_images`` keep it).
+
+Randomness comes from one numpy Generator seeded by ``seed``: a run is reproducible.
 """
 from __future__ import annotations
 
