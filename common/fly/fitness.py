@@ -269,17 +269,26 @@ def _fitness_kernel_py(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, su
                 ol = (xl0 - half) * C
                 orr = (xr0 - half) * C
                 if vertical:
+                    uol = np.uint64(ol)
+                    uor = np.uint64(orr)
+                    uc = np.uint64(C)
                     for j in range(nw):
-                        y = y0 + j - half
+                        L0 = L[np.uint64(y0 + j - half)]
+                        L1 = L[np.uint64(y0 + j - half + 1)]
+                        R0 = R[np.uint64(y0 + j - half)]
+                        R1 = R[np.uint64(y0 + j - half + 1)]
+                        wrow = wexp[j]
                         for p in range(rowlen + C):
-                            a0 = L[y, ol + p]
-                            lrow[p] = a0 + ay * (L[y + 1, ol + p] - a0)
-                            b0 = R[y, orr + p]
-                            rrow[p] = b0 + ay * (R[y + 1, orr + p] - b0)
+                            up = np.uint64(p)
+                            a0 = L0[uol + up]
+                            lrow[up] = a0 + ay * (L1[uol + up] - a0)
+                            b0 = R0[uor + up]
+                            rrow[up] = b0 + ay * (R1[uor + up] - b0)
                         for p in range(rowlen):
-                            d = ((lrow[p] + ax * (lrow[p + C] - lrow[p]))
-                                 - (rrow[p] + bx * (rrow[p + C] - rrow[p])))
-                            acc += wexp[j, p] * d * d
+                            up = np.uint64(p)
+                            d = ((lrow[up] + ax * (lrow[up + uc] - lrow[up]))
+                                 - (rrow[up] + bx * (rrow[up + uc] - rrow[up])))
+                            acc += wrow[up] * d * d
                 else:
                     # Rectified rig: sample the left window at the nearest pixel and the right one at
                     # the same place minus the fly's exact (sub-pixel) disparity, interpolating along
@@ -297,12 +306,20 @@ def _fitness_kernel_py(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, su
                     if yr + nw > H:
                         out[k] = -np.inf
                         continue
+                    # Unsigned indices: numba then skips its negative-index wraparound test, and the
+                    # inner loop vectorises.
+                    uol = np.uint64(ol)
+                    uor = np.uint64(orr)
+                    uc = np.uint64(C)
                     for j in range(nw):
-                        y = yr + j
+                        Lrow = L[np.uint64(yr + j)]
+                        Rrow = R[np.uint64(yr + j)]
+                        wrow = wexp[j]
                         for p in range(rowlen):
-                            b0 = R[y, orr + p]
-                            d = L[y, ol + p] - (b0 + bx * (R[y, orr + p + C] - b0))
-                            acc += wexp[j, p] * d * d
+                            up = np.uint64(p)
+                            b0 = Rrow[uor + up]
+                            d = Lrow[uol + up] - (b0 + bx * (Rrow[uor + up + uc] - b0))
+                            acc += wrow[up] * d * d
                 g = G[int(np.floor(v + 0.5)), int(np.floor(ul + 0.5))]
             else:
                 xl0 = int(np.floor(ul + 0.5))
@@ -314,11 +331,16 @@ def _fitness_kernel_py(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, su
                     continue
                 ol = (xl0 - half) * C
                 orr = (xr0 - half) * C
+                uol = np.uint64(ol)
+                uor = np.uint64(orr)
                 for j in range(nw):
-                    y = y0 + j - half
+                    Lrow = L[np.uint64(y0 + j - half)]
+                    Rrow = R[np.uint64(y0 + j - half)]
+                    wrow = wexp[j]
                     for p in range(rowlen):
-                        d = L[y, ol + p] - R[y, orr + p]
-                        acc += wexp[j, p] * d * d
+                        up = np.uint64(p)
+                        d = Lrow[uol + up] - Rrow[uor + up]
+                        acc += wrow[up] * d * d
                 g = G[y0, xl0]
             out[k] = g / (np.float32(1.0) + acc * inv_floor)
 
