@@ -1,6 +1,6 @@
 """Vectorised ray caster for a world of textured rectangles, and the camera's photometric model.
 
-One numba kernel (parallel over image rows) casts the ray of every pixel against the quads whose screen
+A numba row tracer (run in parallel over image rows) casts the ray of every pixel against the quads whose screen
 bounding box covers it, keeps the nearest hit, and shades it: trilinear (mip-mapped, level chosen by the
 pixel's footprint on the surface) texture lookup × (ambient + sun + point lights, Lambertian, no
 shadows).  Rays follow the project's pinhole model exactly: pixel (i, j) looks along optical direction
@@ -8,7 +8,9 @@ shadows).  Rays follow the project's pinhole model exactly: pixel (i, j) looks a
 depth map holds Z in the camera optical frame.
 
 The photometric stage turns radiance into uint8 like a sensor would: exposure × gain, black offset,
-vignetting, read + shot noise, quantisation.  The two cameras get different gain and offset.
+vignetting, read + shot noise, quantisation.  The two cameras get different gain and offset.  For a
+stereo frame both views are traced and exposed in one parallel pass (`Renderer.stereo`); motion blur
+uses the float radiance path (`Renderer.radiance` with accumulation, then `Renderer.expose`).
 """
 from __future__ import annotations
 
@@ -119,159 +121,230 @@ def _bilinear(texels, off, w, h, x, y, wrap, weight):
     return r, g, b
 
 
+@nb.njit(fastmath=True, cache=True)
+def _plane_offsets(cam_c, origin, normal):
+    """(Q,) (origin − camera)·normal: the numerator of every ray-plane intersection of this view."""
+    Q = origin.shape[0]
+    on = np.empty(Q)
+    for q in range(Q):
+        on[q] = ((origin[q, 0] - cam_c[0]) * normal[q, 0] + (origin[q, 1] - cam_c[1]) * normal[q, 1]
+                 + (origin[q, 2] - cam_c[2]) * normal[q, 2])
+    return on
+
+
+@nb.njit(fastmath=True, cache=True)
+def _trace_row(j, cam_c, R_wc, on, fx, fy, cx, cy, W, bbox, order, n_order, zmin,
+               origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
+               texels, toff, tw, th, nlev, emissive,
+               ambient, sun, sun_int, lights, sky, decal_bias, row_rad, row_depth):
+    """Radiance (W, 3) and depth (W,) of image row j: nearest hit of each pixel's ray, shaded."""
+    inv_fx = 1.0 / fx
+    inv_fy = 1.0 / fy
+    # Quads whose screen box covers this row, nearest first (``order`` is sorted by zmin).
+    rowq = np.empty(max(n_order, 1), np.int64)
+    nq = 0
+    for k in range(n_order):
+        q = order[k]
+        if bbox[q, 2] <= j and j <= bbox[q, 3]:
+            rowq[nq] = q
+            nq += 1
+    prev = -1
+    oy = (j - cy) * inv_fy
+    for i in range(W):
+        ox = (i - cx) * inv_fx
+        dx = R_wc[0, 0] * ox + R_wc[0, 1] * oy + R_wc[0, 2]
+        dy = R_wc[1, 0] * ox + R_wc[1, 1] * oy + R_wc[1, 2]
+        dz = R_wc[2, 0] * ox + R_wc[2, 1] * oy + R_wc[2, 2]
+        best = np.inf
+        bq = -1
+        bt = 0.0
+        ba = 0.0
+        bb = 0.0
+        bden = 0.0
+        for k in range(-1, nq):
+            # The previous pixel's quad first: it usually wins, so the rest fail the depth test early.
+            if k < 0:
+                q = prev
+                if q < 0:
+                    continue
+            else:
+                q = rowq[k]
+                if zmin[q] - decal_bias > best:
+                    break
+                if q == prev:
+                    continue
+            if i < bbox[q, 0] or i > bbox[q, 1]:
+                continue
+            den = dx * normal[q, 0] + dy * normal[q, 1] + dz * normal[q, 2]
+            if den > -1e-12 and den < 1e-12:
+                continue
+            if decal[q] and den >= 0:
+                continue
+            t = on[q] / den
+            if t <= 1e-6:
+                continue
+            te = t - decal_bias if decal[q] else t
+            if te >= best:
+                continue
+            px = cam_c[0] + t * dx - origin[q, 0]
+            py = cam_c[1] + t * dy - origin[q, 1]
+            pz = cam_c[2] + t * dz - origin[q, 2]
+            a = px * u_dual[q, 0] + py * u_dual[q, 1] + pz * u_dual[q, 2]
+            if a < 0.0 or a > 1.0:
+                continue
+            b = px * v_dual[q, 0] + py * v_dual[q, 1] + pz * v_dual[q, 2]
+            if b < 0.0 or b > 1.0:
+                continue
+            best = te
+            bq = q
+            bt = t
+            ba = a
+            bb = b
+            bden = den
+        prev = bq
+        dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if bq < 0:
+            elev = dz / dn
+            f = 1.0 - 0.35 * max(elev, 0.0)
+            for ch in range(3):
+                row_rad[i, ch] = sky[ch] * f
+            row_depth[i] = np.inf
+            continue
+        row_depth[i] = bt
+        tid = tex[bq]
+        s = ba * tex_scale[bq, 0]
+        tt = bb * tex_scale[bq, 1]
+        wrap = tiles[bq]
+        # Mip level = log2 of the pixel footprint in texels: distance·density/fx, widened by
+        # 1/sqrt(cos incidence) (geometric mean of the along- and across-slant footprints).
+        # Squared to avoid a square root: lod = ½·log2(t²·dn³·(density/fx)² / max(|d·n|, 0.02·dn)).
+        cden = max(abs(bden), 0.02 * dn)
+        x2 = bt * bt * dn * dn * dn * texel_density[bq] * texel_density[bq] * inv_fx * inv_fx / cden
+        lod = 0.5 * _fast_log2(max(x2, 1.0))
+        maxl = nlev[tid] - 1
+        if lod > maxl:
+            lod = float(maxl)
+        l0 = int(lod)
+        # "Brilinear": a single bilinear level except in the middle 30 % between two levels, where
+        # the two are blended (saves most second-level fetches, no visible level seams).
+        fr = min(max((lod - l0 - 0.35) * (1.0 / 0.3), 0.0), 1.0)
+        l1 = min(l0 + 1, maxl)
+        # Shading: facing normal towards the camera.
+        sg = -1.0 if bden > 0 else 1.0
+        nx = normal[bq, 0] * sg
+        ny = normal[bq, 1] * sg
+        nz = normal[bq, 2] * sg
+        if emissive[tid]:
+            shade = 1.3
+        else:
+            shade = ambient + sun_int * max(0.0, nx * sun[0] + ny * sun[1] + nz * sun[2])
+            hx = cam_c[0] + bt * dx
+            hy = cam_c[1] + bt * dy
+            hz = cam_c[2] + bt * dz
+            for li in range(lights.shape[0]):
+                lx = lights[li, 0] - hx
+                ly = lights[li, 1] - hy
+                lz = lights[li, 2] - hz
+                d2 = lx * lx + ly * ly + lz * lz
+                ndl = (nx * lx + ny * ly + nz * lz) / np.sqrt(d2 + 1e-12)
+                if ndl > 0:
+                    shade += lights[li, 3] * ndl / (1.0 + d2 / (lights[li, 4] * lights[li, 4]))
+        w0 = tw[tid, l0]
+        h0 = th[tid, l0]
+        if 0.0 < fr < 1.0 and l1 != l0:
+            r0, g0, b0 = _bilinear(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0 - fr)
+            w1 = tw[tid, l1]
+            h1 = th[tid, l1]
+            r1, g1, b1 = _bilinear(texels, toff[tid, l1], w1, h1, s * w1, (1.0 - tt) * h1, wrap, fr)
+            r0 += r1
+            g0 += g1
+            b0 += b1
+        else:
+            lv = l1 if fr >= 1.0 else l0
+            w0 = tw[tid, lv]
+            h0 = th[tid, lv]
+            r0, g0, b0 = _bilinear(texels, toff[tid, lv], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0)
+        row_rad[i, 0] = r0 * shade
+        row_rad[i, 1] = g0 * shade
+        row_rad[i, 2] = b0 * shade
+
+
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
           origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
           texels, toff, tw, th, nlev, emissive,
           ambient, sun, sun_int, lights, sky, decal_bias,
           out_rad, out_depth, accumulate):
-    Q = origin.shape[0]
-    # Per-quad constants for this view.
-    on = np.empty(Q)
-    for q in range(Q):
-        on[q] = ((origin[q, 0] - cam_c[0]) * normal[q, 0] + (origin[q, 1] - cam_c[1]) * normal[q, 1]
-                 + (origin[q, 2] - cam_c[2]) * normal[q, 2])
-    inv_fx = 1.0 / fx
-    inv_fy = 1.0 / fy
+    """Radiance and depth of one view (radiance added to ``out_rad`` when ``accumulate``)."""
+    on = _plane_offsets(cam_c, origin, normal)
     for j in nb.prange(H):
-        # Quads whose screen box covers this row, nearest first (``order`` is sorted by zmin).
-        rowq = np.empty(order.shape[0], np.int64)
-        nq = 0
-        for k in range(order.shape[0]):
-            q = order[k]
-            if bbox[q, 2] <= j and j <= bbox[q, 3]:
-                rowq[nq] = q
-                nq += 1
-        prev = -1
-        oy = (j - cy) * inv_fy
-        for i in range(W):
-            ox = (i - cx) * inv_fx
-            dx = R_wc[0, 0] * ox + R_wc[0, 1] * oy + R_wc[0, 2]
-            dy = R_wc[1, 0] * ox + R_wc[1, 1] * oy + R_wc[1, 2]
-            dz = R_wc[2, 0] * ox + R_wc[2, 1] * oy + R_wc[2, 2]
-            best = np.inf
-            bq = -1
-            bt = 0.0
-            ba = 0.0
-            bb = 0.0
-            bden = 0.0
-            for k in range(-1, nq):
-                # The previous pixel's quad first: it usually wins, so the rest fail the depth test early.
-                if k < 0:
-                    q = prev
-                    if q < 0:
-                        continue
-                else:
-                    q = rowq[k]
-                    if zmin[q] - decal_bias > best:
-                        break
-                    if q == prev:
-                        continue
-                if i < bbox[q, 0] or i > bbox[q, 1]:
-                    continue
-                den = dx * normal[q, 0] + dy * normal[q, 1] + dz * normal[q, 2]
-                if den > -1e-12 and den < 1e-12:
-                    continue
-                if decal[q] and den >= 0:
-                    continue
-                t = on[q] / den
-                if t <= 1e-6:
-                    continue
-                te = t - decal_bias if decal[q] else t
-                if te >= best:
-                    continue
-                px = cam_c[0] + t * dx - origin[q, 0]
-                py = cam_c[1] + t * dy - origin[q, 1]
-                pz = cam_c[2] + t * dz - origin[q, 2]
-                a = px * u_dual[q, 0] + py * u_dual[q, 1] + pz * u_dual[q, 2]
-                if a < 0.0 or a > 1.0:
-                    continue
-                b = px * v_dual[q, 0] + py * v_dual[q, 1] + pz * v_dual[q, 2]
-                if b < 0.0 or b > 1.0:
-                    continue
-                best = te
-                bq = q
-                bt = t
-                ba = a
-                bb = b
-                bden = den
-            prev = bq
-            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if bq < 0:
-                elev = dz / dn
-                f = 1.0 - 0.35 * max(elev, 0.0)
+        row_rad = np.empty((W, 3), np.float32)
+        row_depth = np.empty(W, np.float32)
+        _trace_row(j, cam_c, R_wc, on, fx, fy, cx, cy, W, bbox, order, order.shape[0], zmin,
+                   origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
+                   texels, toff, tw, th, nlev, emissive,
+                   ambient, sun, sun_int, lights, sky, decal_bias, row_rad, row_depth)
+        if accumulate:
+            for i in range(W):
                 for ch in range(3):
-                    val = sky[ch] * f
-                    if accumulate:
-                        out_rad[j, i, ch] += val
-                    else:
-                        out_rad[j, i, ch] = val
-                if not accumulate:
-                    out_depth[j, i] = np.inf
-                continue
-            if not accumulate:
-                out_depth[j, i] = bt
-            tid = tex[bq]
-            s = ba * tex_scale[bq, 0]
-            tt = bb * tex_scale[bq, 1]
-            wrap = tiles[bq]
-            # Mip level = log2 of the pixel footprint in texels: distance·density/fx, widened by
-            # 1/sqrt(cos incidence) (geometric mean of the along- and across-slant footprints).
-            # Squared to avoid a square root: lod = ½·log2(t²·dn³·(density/fx)² / max(|d·n|, 0.02·dn)).
-            cden = max(abs(bden), 0.02 * dn)
-            x2 = bt * bt * dn * dn * dn * texel_density[bq] * texel_density[bq] * inv_fx * inv_fx / cden
-            lod = 0.5 * _fast_log2(max(x2, 1.0))
-            maxl = nlev[tid] - 1
-            if lod > maxl:
-                lod = float(maxl)
-            l0 = int(lod)
-            # "Brilinear": a single bilinear level except in the middle 30 % between two levels, where
-            # the two are blended (saves most second-level fetches, no visible level seams).
-            fr = min(max((lod - l0 - 0.35) * (1.0 / 0.3), 0.0), 1.0)
-            l1 = min(l0 + 1, maxl)
-            # Shading: facing normal towards the camera.
-            sg = -1.0 if bden > 0 else 1.0
-            nx = normal[bq, 0] * sg
-            ny = normal[bq, 1] * sg
-            nz = normal[bq, 2] * sg
-            if emissive[tid]:
-                shade = 1.3
-            else:
-                shade = ambient + sun_int * max(0.0, nx * sun[0] + ny * sun[1] + nz * sun[2])
-                hx = cam_c[0] + bt * dx
-                hy = cam_c[1] + bt * dy
-                hz = cam_c[2] + bt * dz
-                for li in range(lights.shape[0]):
-                    lx = lights[li, 0] - hx
-                    ly = lights[li, 1] - hy
-                    lz = lights[li, 2] - hz
-                    d2 = lx * lx + ly * ly + lz * lz
-                    ndl = (nx * lx + ny * ly + nz * lz) / np.sqrt(d2 + 1e-12)
-                    if ndl > 0:
-                        shade += lights[li, 3] * ndl / (1.0 + d2 / (lights[li, 4] * lights[li, 4]))
-            w0 = tw[tid, l0]
-            h0 = th[tid, l0]
-            if 0.0 < fr < 1.0 and l1 != l0:
-                r0, g0, b0 = _bilinear(texels, toff[tid, l0], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0 - fr)
-                w1 = tw[tid, l1]
-                h1 = th[tid, l1]
-                r1, g1, b1 = _bilinear(texels, toff[tid, l1], w1, h1, s * w1, (1.0 - tt) * h1, wrap, fr)
-                r0 += r1
-                g0 += g1
-                b0 += b1
-            else:
-                lv = l1 if fr >= 1.0 else l0
-                w0 = tw[tid, lv]
-                h0 = th[tid, lv]
-                r0, g0, b0 = _bilinear(texels, toff[tid, lv], w0, h0, s * w0, (1.0 - tt) * h0, wrap, 1.0)
-            if accumulate:
-                out_rad[j, i, 0] += r0 * shade
-                out_rad[j, i, 1] += g0 * shade
-                out_rad[j, i, 2] += b0 * shade
-            else:
-                out_rad[j, i, 0] = r0 * shade
-                out_rad[j, i, 1] = g0 * shade
-                out_rad[j, i, 2] = b0 * shade
+                    out_rad[j, i, ch] += row_rad[i, ch]
+        else:
+            out_rad[j] = row_rad
+            out_depth[j] = row_depth
+
+
+@nb.njit(fastmath=True, cache=True)
+def _expose_row(row_rad, j, g0, offset, vignette, table, start, stride, read_noise, shot_noise, out_row):
+    """Sensor model for one row: gain × vignetting, black offset, read + shot noise, rounding.  The
+    noise of value k (pixel-major, channel-minor) is table[(start + k·stride) mod N] with an odd stride,
+    a permutation of the table: every image gets its own pattern, independent of thread scheduling."""
+    W = row_rad.shape[0]
+    mask = table.shape[0] - 1
+    for i in range(W):
+        g = g0 * vignette[j, i] * 255.0
+        k0 = (j * W + i) * 3
+        for ch in range(3):
+            val = row_rad[i, ch] * g + offset
+            sig = np.sqrt(read_noise * read_noise + shot_noise * max(val, 0.0))
+            val += sig * table[(start + (k0 + ch) * stride) & mask]
+            val = np.floor(val + 0.5)
+            out_row[i, ch] = np.uint8(min(max(val, 0.0), 255.0))
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def _sensor(rad, scale, gain, offset, vignette, table, start, stride, read_noise, shot_noise, out):
+    """uint8 image of a whole radiance image (see _expose_row)."""
+    H = rad.shape[0]
+    for j in nb.prange(H):
+        _expose_row(rad[j], j, scale * gain, offset, vignette, table, start, stride, read_noise, shot_noise,
+                    out[j])
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def _cast_stereo(cams_c, cams_R, fx, fy, cx, cy, W, H, bbox, order, n_order, zmin,
+                 origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
+                 texels, toff, tw, th, nlev, emissive,
+                 ambient, sun, sun_int, lights, sky, decal_bias,
+                 gains, offsets, vignette, table, starts, strides, read_noise, shot_noise,
+                 out_images, out_depth):
+    """Both views of a rig traced and exposed in one parallel pass (rows of the two cameras
+    interleaved): uint8 images (2, H, W, 3) and the first camera's depth (H, W)."""
+    on0 = _plane_offsets(cams_c[0], origin, normal)
+    on1 = _plane_offsets(cams_c[1], origin, normal)
+    for jj in nb.prange(2 * H):
+        cam = jj % 2
+        j = jj // 2
+        on = on0 if cam == 0 else on1
+        row_rad = np.empty((W, 3), np.float32)
+        row_depth = np.empty(W, np.float32)
+        _trace_row(j, cams_c[cam], cams_R[cam], on, fx, fy, cx, cy, W, bbox[cam], order[cam], n_order[cam],
+                   zmin[cam], origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
+                   texels, toff, tw, th, nlev, emissive,
+                   ambient, sun, sun_int, lights, sky, decal_bias, row_rad, row_depth)
+        if cam == 0:
+            out_depth[j] = row_depth
+        _expose_row(row_rad, j, gains[cam], offsets[cam], vignette, table, starts[cam], strides[cam],
+                    read_noise, shot_noise, out_images[cam, j])
 
 
 NOISE_TABLE_BITS = 20
@@ -280,25 +353,6 @@ NOISE_TABLE_BITS = 20
 def noise_table(seed: int) -> np.ndarray:
     """2^20 standard-normal float32 values; each image reads them in a fresh odd-stride order."""
     return np.random.default_rng([int(seed), 0x0153]).standard_normal(1 << NOISE_TABLE_BITS, dtype=np.float32)
-
-
-@nb.njit(parallel=True, fastmath=True, cache=True)
-def _sensor(rad, scale, gain, offset, vignette, table, start, stride, read_noise, shot_noise, out):
-    """Sensor model; the noise of value k (pixel-major, channel-minor) is table[(start + k·stride) mod N]
-    with an odd stride, a permutation of the table, so every image gets its own noise pattern cheaply
-    and independently of thread scheduling."""
-    H, W = vignette.shape
-    mask = table.shape[0] - 1
-    for j in nb.prange(H):
-        for i in range(W):
-            g = scale * gain * vignette[j, i] * 255.0
-            k0 = (j * W + i) * 3
-            for ch in range(3):
-                val = rad[j, i, ch] * g + offset
-                sig = np.sqrt(read_noise * read_noise + shot_noise * max(val, 0.0))
-                val += sig * table[(start + (k0 + ch) * stride) & mask]
-                val = np.floor(val + 0.5)
-                out[j, i, ch] = np.uint8(min(max(val, 0.0), 255.0))
 
 
 class Renderer:
@@ -324,16 +378,11 @@ class Renderer:
     def radiance(self, T_map_optical: np.ndarray, out_rad=None, out_depth=None, accumulate=False):
         """(H, W, 3) float32 radiance and (H, W) float32 depth (Z, inf for sky) seen from a camera pose."""
         q, a = self.world.quads, self.world.atlas
-        c = np.ascontiguousarray(T_map_optical[:3, 3], float)
-        R_wc = np.ascontiguousarray(T_map_optical[:3, :3], float)
         if out_rad is None:
             out_rad = np.empty((self.H, self.W, 3), np.float32)
         if out_depth is None:
             out_depth = np.empty((self.H, self.W), np.float32)
-        bbox, zmin = _screen_bboxes(c, np.ascontiguousarray(R_wc.T), self.fx, self.fy, self.cx, self.cy,
-                                    self.W, self.H, q.origin, q.u, q.v)
-        visible = np.flatnonzero(bbox[:, 0] <= bbox[:, 1])
-        order = visible[np.argsort(zmin[visible], kind="stable")]
+        c, R_wc, bbox, order, zmin = self._view_setup(T_map_optical)
         _cast(c, R_wc, self.fx, self.fy, self.cx, self.cy, self.W, self.H, bbox, order, zmin,
               q.origin, q.normal, q.u_dual, q.v_dual, q.tex, q.decal, q.tex_scale, q.tiles, q.texel_density,
               a.texels, a.offset, a.width, a.height, a.n_levels, a.emissive,
@@ -342,17 +391,61 @@ class Renderer:
               out_rad, out_depth, accumulate)
         return out_rad, out_depth
 
+    def _view_setup(self, T_map_optical: np.ndarray):
+        q = self.world.quads
+        c = np.ascontiguousarray(T_map_optical[:3, 3], float)
+        R_wc = np.ascontiguousarray(T_map_optical[:3, :3], float)
+        bbox, zmin = _screen_bboxes(c, np.ascontiguousarray(R_wc.T), self.fx, self.fy, self.cx, self.cy,
+                                    self.W, self.H, q.origin, q.u, q.v)
+        visible = np.flatnonzero(bbox[:, 0] <= bbox[:, 1])
+        order = visible[np.argsort(zmin[visible], kind="stable")]
+        return c, R_wc, bbox, order, zmin
+
+    def stereo(self, T_map_left: np.ndarray, T_map_right: np.ndarray, gains, offsets, vignette: np.ndarray,
+               table: np.ndarray, rng: np.random.Generator, read_noise: float, shot_noise: float):
+        """(left, right) uint8 images and the left depth (H, W) float32, traced and exposed in one
+        parallel pass — the fast path of a stereo frame (no motion blur)."""
+        q, a = self.world.quads, self.world.atlas
+        views = [self._view_setup(T_map_left), self._view_setup(T_map_right)]
+        Q = len(q)
+        order = np.zeros((2, max(Q, 1)), np.int64)
+        n_order = np.zeros(2, np.int64)
+        for k, v in enumerate(views):
+            order[k, :len(v[3])] = v[3]
+            n_order[k] = len(v[3])
+        starts, strides = self._noise_draws(table, rng, 2)
+        images = np.empty((2, self.H, self.W, 3), np.uint8)
+        depth = np.empty((self.H, self.W), np.float32)
+        lt = self.world.scenario.lighting
+        _cast_stereo(np.stack([views[0][0], views[1][0]]), np.stack([views[0][1], views[1][1]]),
+                     self.fx, self.fy, self.cx, self.cy, self.W, self.H,
+                     np.stack([views[0][2], views[1][2]]), order, n_order, np.stack([views[0][4], views[1][4]]),
+                     q.origin, q.normal, q.u_dual, q.v_dual, q.tex, q.decal, q.tex_scale, q.tiles, q.texel_density,
+                     a.texels, a.offset, a.width, a.height, a.n_levels, a.emissive,
+                     float(lt.ambient), self._sun, float(lt.sun_intensity), self._lights, self._sky, DECAL_BIAS_M,
+                     np.asarray(gains, float), np.asarray(offsets, float), vignette, table, starts, strides,
+                     float(read_noise), float(shot_noise), images, depth)
+        return images[0], images[1], depth
+
+    @staticmethod
+    def _noise_draws(table: np.ndarray, rng: np.random.Generator, n_images: int):
+        n = table.shape[0]
+        if n & (n - 1):
+            raise ValueError("noise table length must be a power of two")
+        starts = np.empty(n_images, np.int64)
+        strides = np.empty(n_images, np.int64)
+        for k in range(n_images):
+            starts[k] = int(rng.integers(0, n))
+            strides[k] = int(rng.integers(0, 128)) * 2 + 1  # odd: a permutation; small: cache-friendly
+        return starts, strides
+
     @staticmethod
     def expose(rad: np.ndarray, scale: float, gain: float, offset: float, vignette: np.ndarray,
                table: np.ndarray, rng: np.random.Generator, read_noise: float, shot_noise: float) -> np.ndarray:
         """uint8 image of a radiance image through the sensor model (gain, black offset, vignetting,
         read + shot noise drawn from ``table`` in an order chosen by ``rng``, rounding)."""
-        n = table.shape[0]
-        if n & (n - 1):
-            raise ValueError("noise table length must be a power of two")
         out = np.empty(rad.shape, np.uint8)
-        start = int(rng.integers(0, n))
-        stride = int(rng.integers(0, 128)) * 2 + 1  # odd: a permutation; small: cache-friendly
-        _sensor(rad, float(scale), float(gain), float(offset), vignette, table, start, stride,
+        starts, strides = Renderer._noise_draws(table, rng, 1)
+        _sensor(rad, float(scale), float(gain), float(offset), vignette, table, int(starts[0]), int(strides[0]),
                 float(read_noise), float(shot_noise), out)
         return out

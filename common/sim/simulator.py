@@ -214,6 +214,13 @@ class Simulator:
         else:
             t0 = max(self._history[0][0], stamp - int(cam.exposure_time_s * 1e9))
             bases = [self.truth_at(int(t)) for t in np.linspace(t0, stamp, n)]
+        if n == 1:  # fast path: both views traced and exposed in one pass
+            T_map_left = T_map_base @ T_base_left
+            left, right, depth = self.renderer.stereo(
+                T_map_left, T_map_left @ self._T_left_right, (cam.exposure, cam.exposure * cam.gain_right),
+                (0.0, cam.offset_right), self._vignette, self._noise_table, self._cam_rng,
+                cam.read_noise, cam.shot_noise)
+            return StereoImages(stamp, left, right, depth, T_map_base)
         images, depth = [], None
         for side, T_left_side in (("left", np.eye(4)), ("right", self._T_left_right)):
             # Radiance goes to a reused scratch buffer; depth and images are fresh (handed to the caller).
