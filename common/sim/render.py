@@ -24,7 +24,7 @@ from common.sim.world import DECAL_BIAS_M, World
 NEAR_M = 0.01
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _screen_bboxes(cam_c, R_cw, fx, fy, cx, cy, W, H, origin, u, v):
     """(Q, 4) int64 [u0, u1, v0, v1] pixel bounds of each quad after clipping at the near plane
     (u0 > u1 when the quad is not visible at all) and (Q,) its nearest optical Z.  R_cw rotates map
@@ -76,7 +76,7 @@ def _screen_bboxes(cam_c, R_cw, fx, fy, cx, cy, W, H, origin, u, v):
     return out, zmin
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _fast_log2(x):
     """log2 of x > 0 to within 0.01 (mip selection does not need more), much cheaper than np.log2."""
     m, e = math.frexp(x)           # x = m · 2^e, m in [0.5, 1)
@@ -84,7 +84,7 @@ def _fast_log2(x):
     return (e - 1) + y * (1.3465 - 0.3465 * y)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _bilinear(texels, off, w, h, x, y, wrap, weight):
     """weight × bilinear sample (r, g, b) of one mip level at texel coordinates (x, y)."""
     x -= 0.5
@@ -121,7 +121,7 @@ def _bilinear(texels, off, w, h, x, y, wrap, weight):
     return r, g, b
 
 
-@nb.njit(fastmath=True, cache=True)
+@nb.njit(fastmath=True, cache=True, error_model="numpy")
 def _plane_offsets(cam_c, origin, normal):
     """(Q,) (origin − camera)·normal: the numerator of every ray-plane intersection of this view."""
     Q = origin.shape[0]
@@ -132,7 +132,7 @@ def _plane_offsets(cam_c, origin, normal):
     return on
 
 
-@nb.njit(fastmath=True, cache=True)
+@nb.njit(fastmath=True, cache=True, error_model="numpy")
 def _trace_row(j, cam_c, R_wc, on, fx, fy, cx, cy, W, bbox, order, n_order, zmin,
                origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
                texels, toff, tw, th, nlev, emissive,
@@ -269,7 +269,7 @@ def _trace_row(j, cam_c, R_wc, on, fx, fy, cx, cy, W, bbox, order, n_order, zmin
         row_rad[i, 2] = b0 * shade
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
 def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
           origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
           texels, toff, tw, th, nlev, emissive,
@@ -293,7 +293,7 @@ def _cast(cam_c, R_wc, fx, fy, cx, cy, W, H, bbox, order, zmin,
             out_depth[j] = row_depth
 
 
-@nb.njit(fastmath=True, cache=True)
+@nb.njit(fastmath=True, cache=True, error_model="numpy")
 def _expose_row(row_rad, j, g0, offset, vignette, table, start, stride, read_noise, shot_noise, out_row):
     """Sensor model for one row: gain × vignetting, black offset, read + shot noise, rounding.  The
     noise of value k (pixel-major, channel-minor) is table[(start + k·stride) mod N] with an odd stride,
@@ -311,7 +311,7 @@ def _expose_row(row_rad, j, g0, offset, vignette, table, start, stride, read_noi
             out_row[i, ch] = np.uint8(min(max(val, 0.0), 255.0))
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
 def _sensor(rad, scale, gain, offset, vignette, table, start, stride, read_noise, shot_noise, out):
     """uint8 image of a whole radiance image (see _expose_row)."""
     H = rad.shape[0]
@@ -320,7 +320,7 @@ def _sensor(rad, scale, gain, offset, vignette, table, start, stride, read_noise
                     out[j])
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
 def _cast_stereo(cams_c, cams_R, fx, fy, cx, cy, W, H, bbox, order, n_order, zmin,
                  origin, normal, u_dual, v_dual, tex, decal, tex_scale, tiles, texel_density,
                  texels, toff, tw, th, nlev, emissive,
