@@ -241,14 +241,6 @@ class FlyEvolver:
         top = np.argpartition(-shared, k - 1)[:k]
         return top[self.rng.integers(0, k, m)]
 
-    def _mates(self, parents: np.ndarray, k: int = 1) -> np.ndarray:
-        """(k, m) mates for m parents among their neighbours in the cell-ordered population (±1…±R places)."""
-        n = len(self._pos)
-        off = self.rng.integers(-_MATE_REACH, _MATE_REACH, (k, len(parents)))
-        off[off >= 0] += 1
-        mate = parents + off
-        return np.where((mate < 0) | (mate >= n), parents - off, mate)
-
     def _make_offspring(self, parents: np.ndarray, ops: np.ndarray, parent_sigma: np.ndarray):
         """Children positions and disparity steps (one numba loop over the batch, see operators)."""
         c, rng = self.config, self.rng
@@ -258,16 +250,11 @@ class FlyEvolver:
                       else np.zeros((0, 3), np.float32))
         child = np.empty((m, 3), np.float32)
         sigma = np.empty(m, np.float32)
-        mates = self._mates(parents, 1 + _EXCHANGE_BEST_OF)
-        mates1, mates2 = mates[0], mates[1]
-        exc = np.nonzero(ops == EXCHANGE)[0]
-        if len(exc) and _EXCHANGE_BEST_OF > 1:   # depth exchange copies the fittest of a few neighbours
-            cand = mates[1:, exc]
-            mates1[exc] = cand[np.argmax(self._fit[cand], axis=0), np.arange(len(exc))]
-        make_offspring(ops, parents, mates1, mates2, self._pos, parent_sigma,
-                       rng.standard_normal((m, 3)), rng.random((m, 3)), immigrants, self._cam,
+        none = np.zeros(0, np.int64)
+        make_offspring(ops, parents, none, none, self._pos, self._fit, parent_sigma, immigrants, self._cam,
                        float(c.mutation_sigma_px), float(self._d_range[0]), float(self._d_range[1]),
-                       float(c.mutation_sigma_disparity_min), float(c.mutation_sigma_disparity), child, sigma)
+                       float(c.mutation_sigma_disparity_min), float(c.mutation_sigma_disparity), _MATE_REACH,
+                       _EXCHANGE_BEST_OF, int(rng.integers(2 ** 62)), child, sigma)
         return child, sigma
 
     def _steady_generation(self) -> None:
@@ -293,7 +280,7 @@ class FlyEvolver:
             child, sigma = self._make_offspring(parents, ops, self._sigma_d[parents])
             fit = self.evaluate(child)
             g = self.sharing
-            insert_offspring(ops, parents, rng.integers(0, n, (m, max(2, c.tournament_size))), child, sigma,
+            insert_offspring(ops, parents, max(2, c.tournament_size), int(rng.integers(2 ** 62)), child, sigma,
                              fit, self._pos, self._fit, self._sigma_d, self._cells, g.counts,
                              float(g.expected), float(g.strength), float(g.cell), g.cols, g.rows, self._cam,
                              bool(c.crowding), bool(c.adaptive_mutation), _STEP_UP, _STEP_DOWN,

@@ -58,51 +58,75 @@ def _to_point(u, v, d, cam, out, i):
 
 
 @numba.njit(cache=True)
-def make_offspring(ops, parents, mates1, mates2, pos, parent_sigma, normals, unif, immigrants, cam,
-                   sigma_px, d_lo, d_hi, exchange_sigma, immigrant_sigma, out_child, out_sigma):
+def _local_mate(p, n, reach):
+    """A random neighbour of ``p`` in the cell-ordered population: ±1…±reach places."""
+    off = np.random.randint(1, reach + 1)
+    if np.random.random() < 0.5:
+        off = -off
+    m = p + off
+    if m < 0 or m >= n:
+        m = p - off
+    return min(max(m, 0), n - 1)
+
+
+@numba.njit(cache=True)
+def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigrants, cam, sigma_px, d_lo,
+                   d_hi, exchange_sigma, immigrant_sigma, mate_reach, exchange_best_of, seed, out_child,
+                   out_sigma):
     """One child per entry of ``ops`` (operator codes above).
 
     * MUTATION: parent's (u, v) + N(0, sigma_px²) each, disparity + N(0, parent_sigma²), clipped to
       [d_lo, d_hi];
-    * EXCHANGE: parent's pixel with mate 1's disparity (+ N(0, exchange_sigma²)) — uniform crossover of
-      the (u, v | d) genes, which spreads a found surface along the image;
-    * CROSSOVER2: λ·parent + (1−λ)·mate1, λ = unif[:, 0] — on the parents' segment;
-    * CROSSOVER3: barycentric weights uniform on the simplex (normalised exponentials of unif) — in the
+    * EXCHANGE: parent's pixel with the mate's disparity (+ N(0, exchange_sigma²)) — uniform crossover of
+      the (u, v | d) genes, which spreads a found surface along the image; the mate is the fittest of
+      ``exchange_best_of`` local mates;
+    * CROSSOVER2: λ·parent + (1−λ)·mate, λ ~ U(0, 1) — on the parents' segment;
+    * CROSSOVER3: barycentric weights uniform on the simplex (normalised exponentials) — in the
       parents' triangle, hence their plane;
     * IMMIGRANT: the next row of ``immigrants`` (drawn like the initialisation).
-    normals: (m, 3) standard normals; unif: (m, 3) uniforms in [0, 1).
+    With ``mate_reach`` > 0 mates are drawn among population neighbours (±mate_reach places), else they
+    are ``mates1``/``mates2``.  Random numbers come from numba's generator seeded with ``seed``.
     """
+    np.random.seed(seed)
+    n = pos.shape[0]
     k = 0
     for i in range(ops.shape[0]):
         p = parents[i]
         op = ops[i]
         out_sigma[i] = parent_sigma[i]
+        if mate_reach > 0:
+            m1 = _local_mate(p, n, mate_reach)
+            m2 = _local_mate(p, n, mate_reach)
+        else:
+            m1 = mates1[i]
+            m2 = mates2[i]
         if op == MUTATION or op == EXCHANGE:
             u, v, d = _uvd(pos[p, 0], pos[p, 1], pos[p, 2], cam)
             if op == MUTATION:
-                u += normals[i, 0] * sigma_px
-                v += normals[i, 1] * sigma_px
-                d += normals[i, 2] * parent_sigma[i]
+                u += np.random.normal(0.0, 1.0) * sigma_px
+                v += np.random.normal(0.0, 1.0) * sigma_px
+                d += np.random.normal(0.0, 1.0) * parent_sigma[i]
             else:
-                m = mates1[i]
-                _, _, d = _uvd(pos[m, 0], pos[m, 1], pos[m, 2], cam)
-                d += normals[i, 2] * exchange_sigma
+                if mate_reach > 0:
+                    for _ in range(exchange_best_of - 1):
+                        q = _local_mate(p, n, mate_reach)
+                        if fit[q] > fit[m1]:
+                            m1 = q
+                _, _, d = _uvd(pos[m1, 0], pos[m1, 1], pos[m1, 2], cam)
+                d += np.random.normal(0.0, 1.0) * exchange_sigma
             d = min(max(d, d_lo), d_hi)
             _to_point(u, v, d, cam, out_child, i)
         elif op == CROSSOVER2:
-            lam = unif[i, 0]
-            m = mates1[i]
+            lam = np.random.random()
             for a in range(3):
-                out_child[i, a] = lam * pos[p, a] + (1.0 - lam) * pos[m, a]
+                out_child[i, a] = lam * pos[p, a] + (1.0 - lam) * pos[m1, a]
         elif op == CROSSOVER3:
-            e0 = -np.log(1.0 - unif[i, 0])
-            e1 = -np.log(1.0 - unif[i, 1])
-            e2 = -np.log(1.0 - unif[i, 2])
+            e0 = -np.log(1.0 - np.random.random())
+            e1 = -np.log(1.0 - np.random.random())
+            e2 = -np.log(1.0 - np.random.random())
             s = e0 + e1 + e2
             if not s > 0.0:
                 e0, e1, e2, s = 1.0, 1.0, 1.0, 3.0
-            m1 = mates1[i]
-            m2 = mates2[i]
             for a in range(3):
                 out_child[i, a] = (e0 * pos[p, a] + e1 * pos[m1, a] + e2 * pos[m2, a]) / s
         else:  # IMMIGRANT
@@ -118,10 +142,12 @@ def _run(ops, pos, parents, mates1, mates2, parent_sigma, rng, calib=None, sigma
     child = np.empty((m, 3), np.float32)
     sigma = np.empty(m, np.float32)
     cam = camera_vector(calib) if calib is not None else np.ones(6)
-    make_offspring(np.asarray(ops, np.int64), parents, mates1, mates2, np.ascontiguousarray(pos, np.float32),
-                   np.asarray(parent_sigma, np.float32), rng.standard_normal((m, 3)), rng.random((m, 3)),
-                   np.zeros((0, 3), np.float32), cam, float(sigma_px), float(d_range[0]), float(d_range[1]),
-                   float(exchange_sigma), 0.0, child, sigma)
+    pos = np.ascontiguousarray(pos, np.float32)
+    make_offspring(np.asarray(ops, np.int64), np.asarray(parents, np.int64), np.asarray(mates1, np.int64),
+                   np.asarray(mates2, np.int64), pos, np.zeros(len(pos), np.float32),
+                   np.asarray(parent_sigma, np.float32), np.zeros((0, 3), np.float32), cam, float(sigma_px),
+                   float(d_range[0]), float(d_range[1]), float(exchange_sigma), 0.0, 0, 1,
+                   int(rng.integers(2 ** 62)), child, sigma)
     return child
 
 
@@ -169,17 +195,20 @@ def _shared(f, count, expected, strength):
 
 
 @numba.njit(cache=True)
-def insert_offspring(ops, parents, candidates, child, child_sigma, child_fit, pos, fit, sigma_d, cells,
-                     counts, expected, strength, cell_px, cols, rows, cam, crowding, adaptive, step_up,
+def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child_fit, pos, fit, sigma_d,
+                     cells, counts, expected, strength, cell_px, cols, rows, cam, crowding, adaptive, step_up,
                      step_down, sigma_min, sigma_max):
     """Steady-state insertion, one child at a time (sharing counts kept exact as flies move).
 
     The victim is the parent for mutation and exchange children when ``crowding`` (deterministic
-    crowding), else the worst (by shared fitness) of that row of ``candidates`` (reverse tournament).
+    crowding), else the worst (by shared fitness) of ``n_candidates`` random flies (reverse tournament,
+    numba's generator seeded with ``seed``).
     A child replaces its victim when its shared fitness is at least the victim's; immigrants always do.
     With ``adaptive``, a mutation that wins multiplies its step by ``step_up`` and one that loses
     multiplies its parent's by ``step_down`` (a per-fly success rule).  Returns the number inserted.
     """
+    np.random.seed(seed)
+    n = pos.shape[0]
     inserted = 0
     for i in range(ops.shape[0]):
         op = ops[i]
@@ -195,10 +224,10 @@ def insert_offspring(ops, parents, candidates, child, child_sigma, child_fit, po
         if local:
             victim = parents[i]
         else:
-            victim = candidates[i, 0]
+            victim = 0
             best = np.inf
-            for j in range(candidates.shape[1]):
-                c = candidates[i, j]
+            for _ in range(n_candidates):
+                c = np.random.randint(0, n)
                 s = _shared(fit[c], counts[cells[c]] if cells[c] >= 0 else 0, expected, strength)
                 if s < best:
                     best = s
