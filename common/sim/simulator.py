@@ -102,10 +102,9 @@ class Simulator:
         self.odometry = WheelOdometry(scenario.odometry, r_odo)
         self.sonar = SonarRing(scenario.sonar, r_sonar)
         self._sonar_segments = self.world.obstacle_segments(scenario.sonar.height_m, scenario.sonar.height_m)
-        self._collision_segments = self.world.obstacle_segments(0.02, 2.0)
 
         self.pose = tuple(float(v) for v in scenario.start)     # x, y, yaw of base_link in map
-        self.T_map_odom = planar_pose(*self.pose)
+        self.T_map_odom = planar_pose(*self.pose)  # odometry's dead reckoning starts at 0 in this frame
         self.motion = make_motion(scenario.path, self.pose)
         self.time_ns = 0
         self.collisions = 0
