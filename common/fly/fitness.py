@@ -67,17 +67,31 @@ def estimate_noise_sigma(grey: np.ndarray, flat_fraction: float = 0.3) -> float:
     g = np.asarray(grey, dtype=np.float32)
     if g.shape[0] < 3 or g.shape[1] < 3:
         raise ImageError(f"image {g.shape} too small to estimate noise")
-    a, b, c = g[0:-2:2], g[1:-1:2], g[2::2]          # row triplets centred on rows 1, 3, 5, ...
-
-    def cols(r, w0, w1, w2):                          # horizontal 3-tap filter at columns 1, 3, 5, ...
-        return w0 * r[:, 0:-2:2] + w1 * r[:, 1:-1:2] + w2 * r[:, 2::2]
-
-    lap = np.abs(cols(a, 1, -2, 1) - 2 * cols(b, 1, -2, 1) + cols(c, 1, -2, 1))
-    grad = (np.abs(cols(a, -1, 0, 1) + 2 * cols(b, -1, 0, 1) + cols(c, -1, 0, 1))
-            + np.abs(cols(c, 1, 2, 1) - cols(a, 1, 2, 1))).ravel()
+    lap, grad = _laplacian_and_gradient_quarter(np.ascontiguousarray(g))
+    lap, grad = lap.ravel(), grad.ravel()
     k = max(int(flat_fraction * grad.size) - 1, 0)
     flat = grad <= np.partition(grad, k)[k]
-    return float(np.sqrt(np.pi / 2) * lap.ravel()[flat].mean(dtype=np.float64) / 6.0)
+    return float(np.sqrt(np.pi / 2) * lap[flat].mean(dtype=np.float64) / 6.0)
+
+
+@numba.njit(cache=True)
+def _laplacian_and_gradient_quarter(g):
+    """|Immerkær Laplacian difference| and |Sobel x| + |Sobel y| at odd rows and columns (interior)."""
+    H, W = g.shape
+    h, w = (H - 1) // 2, (W - 1) // 2
+    lap = np.empty((h, w), np.float32)
+    grad = np.empty((h, w), np.float32)
+    for i in range(h):
+        y = 2 * i + 1
+        for j in range(w):
+            x = 2 * j + 1
+            a0, a1, a2 = g[y - 1, x - 1], g[y - 1, x], g[y - 1, x + 1]
+            b0, b1, b2 = g[y, x - 1], g[y, x], g[y, x + 1]
+            c0, c1, c2 = g[y + 1, x - 1], g[y + 1, x], g[y + 1, x + 1]
+            lap[i, j] = abs((a0 - 2 * a1 + a2) - 2 * (b0 - 2 * b1 + b2) + (c0 - 2 * c1 + c2))
+            grad[i, j] = (abs((a2 - a0) + 2 * (b2 - b0) + (c2 - c0))
+                          + abs((c0 + 2 * c1 + c2) - (a0 + 2 * a1 + a2)))
+    return lap, grad
 
 
 def window_weights(n: int, channels: int, sigma: float | None) -> np.ndarray:
@@ -157,22 +171,33 @@ def _min_half_window_mean(sq, h):
 
 
 @numba.njit(cache=True)
-def _float_and_grey(img, blur, remove_mean):
-    """float32 copy of a uint8 image (minus its local mean when ``remove_mean``) and its grey level
-    (channel mean, before mean removal), in one pass."""
+def _minus(img, mean, remove):
+    """float32 ``img − mean`` (both uint8, same shape), or just ``img`` as float32."""
+    a = img.ravel()
+    b = mean.ravel()
+    out = np.empty(a.size, np.float32)
+    if remove:
+        for i in range(a.size):
+            out[i] = np.float32(a[i]) - np.float32(b[i])
+    else:
+        for i in range(a.size):
+            out[i] = np.float32(a[i])
+    return out.reshape(img.shape)
+
+
+@numba.njit(cache=True)
+def _grey(img):
+    """Channel mean of an H×W×C uint8 image, as float32."""
     H, W, C = img.shape
-    out = np.empty((H, W, C), np.float32)
-    grey = np.empty((H, W), np.float32)
+    flat = img.reshape(H * W * C)
+    out = np.empty(H * W, np.float32)
     inv_c = np.float32(1.0 / C)
-    for y in range(H):
-        for x in range(W):
-            g = np.float32(0.0)
-            for c in range(C):
-                a = np.float32(img[y, x, c])
-                g += a
-                out[y, x, c] = a - np.float32(blur[y, x, c]) if remove_mean else a
-            grey[y, x] = g * inv_c
-    return out, grey
+    for i in range(H * W):
+        acc = np.float32(0.0)
+        for c in range(C):
+            acc += np.float32(flat[i * C + c])
+        out[i] = acc * inv_c
+    return out.reshape(H, W)
 
 
 def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
@@ -201,8 +226,9 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
             raise ImageError(f"left image must be H×W mono or H×W×3 RGB, got shape {la.shape}")
         bl = cv2.blur(la3, k, borderType=cv2.BORDER_REPLICATE).reshape(la3.shape) if mean_removal_px else la3
         br = cv2.blur(ra3, k, borderType=cv2.BORDER_REPLICATE).reshape(ra3.shape) if mean_removal_px else ra3
-        L, grey = _float_and_grey(np.ascontiguousarray(la3), np.ascontiguousarray(bl), bool(mean_removal_px))
-        R, _ = _float_and_grey(np.ascontiguousarray(ra3), np.ascontiguousarray(br), bool(mean_removal_px))
+        L = _minus(np.ascontiguousarray(la3), np.ascontiguousarray(bl), bool(mean_removal_px))
+        R = _minus(np.ascontiguousarray(ra3), np.ascontiguousarray(br), bool(mean_removal_px))
+        grey = _grey(np.ascontiguousarray(la3))
         C = L.shape[2]
     else:
         L, R = _as_float_image(left, "left"), _as_float_image(right, "right")
@@ -221,7 +247,7 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     sq = cv2.multiply(gx, gx) if epipolar_gradient else cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy))
     energy = gradient_energy(sq, int(gradient_window or neighbourhood), min_half_window)
     sat2 = np.float32((gradient_saturation * sigma) ** 2)
-    G = energy / (energy + sat2) if sat2 > 0 else np.ones_like(energy)
+    G = cv2.divide(energy, energy + sat2) if sat2 > 0 else np.ones_like(energy)
     return PreparedFrame(np.ascontiguousarray(L), np.ascontiguousarray(R), np.ascontiguousarray(G), sigma,
                          1.0 / floor, window_weights(neighbourhood, C, window_sigma))
 
