@@ -1,0 +1,158 @@
+"""Benchmark the harmonic planner: cold solve, warm update and usable-gradient share on 100², 200², 400².
+
+The map (at 5 cm) is corridor-like — a serpentine of walls 1.6 m apart plus random boxes — built from
+flies, so every figure includes evidence -> inflation -> connectivity -> relaxation.  A *warm update* adds
+a small object (a cluster of flies covering ~3 x 3 cells, ~25 x 25 cells once inflated) at a random free
+spot of the converged map and re-solves from the previous solution to the same tolerance.
+``usable_gradient_fraction`` is the share of free cells connected to the target from which discrete
+steepest descent of the field reaches the target; ``plain_*`` is the same for the textbook potential u
+relaxed (SOR, converged) in float64 / float32.  numba compile time is excluded (warm-up run first).
+
+Usage: python bench/planner.py [--json] [--sizes 100 200 400] [--warm-trials 5]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from common.planning import HarmonicPlanner, PlannerConfig
+from common.planning import harmonic as hk
+
+RES = 0.05
+
+
+def log(*a):
+    print(*a, file=sys.stderr, flush=True)
+
+
+def serpentine_flies(n_cells: int, rng: np.random.Generator) -> np.ndarray:
+    size = n_cells * RES
+    step = 0.02
+    pts = []
+    spacing = 1.6
+    for k, y in enumerate(np.arange(spacing, size - 0.2, spacing)):
+        x0, x1 = (0.0, size - 1.5) if k % 2 == 0 else (1.5, size)     # 1.5 m gaps at alternate ends
+        xs = np.arange(x0, x1, step)
+        pts.append(np.column_stack([xs, np.full_like(xs, y)]))
+    for _ in range(max(1, n_cells // 25)):          # boxes of 16-24 cm
+        c = rng.uniform([1.8, 0.3], [size - 1.8, size - 0.3])           # boxes never block a gap
+        h = rng.uniform(0.08, 0.12)
+        t = np.arange(-h, h, step)
+        for side in (np.column_stack([t, np.full_like(t, -h)]), np.column_stack([t, np.full_like(t, h)]),
+                     np.column_stack([np.full_like(t, -h), t]), np.column_stack([np.full_like(t, h), t])):
+            pts.append(c + side)
+    xy = np.vstack(pts)
+    return np.column_stack([xy, rng.uniform(0.1, 0.9, len(xy))])
+
+
+def make_planner(n_cells: int, seed: int = 0) -> tuple[HarmonicPlanner, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    size = n_cells * RES
+    pl = HarmonicPlanner(PlannerConfig(resolution=RES, size_m=(size, size), origin=(0.0, 0.0)))
+    flies = serpentine_flies(n_cells, rng)
+    pl.update_flies(flies, np.ones(len(flies)), 0)
+    pl.set_target(0.5, 0.5, 0.25)
+    return pl, flies
+
+
+def padded_psi(pl: HarmonicPlanner) -> np.ndarray:
+    psi = np.full(pl._state.shape, -np.inf)
+    psi[1:-1, 1:-1] = pl.log_phi
+    return psi
+
+
+def small_object(pl: HarmonicPlanner, rng: np.random.Generator) -> np.ndarray:
+    """Flies of a ~15 cm object at a random cell connected to the target and well clear of obstacles."""
+    ok = np.argwhere((pl._state[1:-1, 1:-1] == hk.ACTIVE) & (pl.clearance > 0.5))
+    r, c = ok[rng.integers(len(ok))]
+    centre = pl.cell_centres(r, c)
+    xy = centre + rng.uniform(-0.07, 0.07, (40, 2))
+    return np.column_stack([xy, np.full(40, 0.5)])
+
+
+def bench_size(n: int, warm_trials: int) -> dict:
+    pl, _ = make_planner(n)
+    t = time.perf_counter()
+    rep = pl.solve()
+    full_ms = (time.perf_counter() - t) * 1e3
+    psi = padded_psi(pl)
+    usable = hk.usable_fraction(psi, pl._state)
+    far = float(-psi[pl._state == hk.ACTIVE].min())
+    log(f"{n}x{n}: cold solve {full_ms:.0f} ms ({rep.sweeps} sweeps, converged={rep.converged}), "
+        f"{rep.active_cells} active cells, usable {usable:.4f}, min log phi {-far:.0f}")
+    rng = np.random.default_rng(1)
+    warm_ms, warm_sweeps, budget_usable = [], [], []
+    stamp = 1
+    for _ in range(warm_trials):
+        obj = small_object(pl, rng)
+        # with a 10 ms budget (one planner cycle): how usable is the field right after the change?
+        probe, _ = make_planner(n)
+        probe._s, probe._r, probe._state = pl._s.copy(), pl._r.copy(), pl._state.copy()
+        probe._has_solution, probe._solved_key = True, (probe.grid.version, probe._target_version)
+        probe.update_flies(obj, np.ones(len(obj)), stamp)
+        probe.solve(max_ms=10.0)
+        budget_usable.append(hk.usable_fraction(padded_psi(probe), probe._state))
+        # to convergence
+        pl.update_flies(obj, np.ones(len(obj)), stamp)
+        stamp += 1
+        t = time.perf_counter()
+        rep = pl.solve()
+        warm_ms.append((time.perf_counter() - t) * 1e3)
+        warm_sweeps.append(rep.sweeps)
+    usable_after = hk.usable_fraction(padded_psi(pl), pl._state)
+    log(f"{n}x{n}: warm update {np.median(warm_ms):.1f} ms median ({warm_ms}), sweeps {warm_sweeps}, "
+        f"usable after 10 ms budget {budget_usable}, after convergence {usable_after:.4f}")
+    plain = {}
+    for name, dtype, tol, cap in (("float64", np.float64, 1e-13, 50000), ("float32", np.float32, 1e-6, 5000)):
+        t = time.perf_counter()
+        u = hk.plain_potential(pl._state, dtype, tol=tol, max_sweeps=cap)
+        plain[name] = hk.usable_fraction(-u.astype(np.float64), pl._state)
+        log(f"{n}x{n}: plain {name} relaxation usable {plain[name]:.4f} ({(time.perf_counter() - t) * 1e3:.0f} ms)")
+    return dict(full_ms=full_ms, warm_ms=float(np.median(warm_ms)), warm_ms_max=float(np.max(warm_ms)),
+                warm_sweeps=float(np.median(warm_sweeps)), budget_usable=float(np.min(budget_usable)),
+                usable=min(usable, usable_after), plain=plain, min_log_phi=-far,
+                active=int(rep.active_cells))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[100, 200, 400])
+    ap.add_argument("--warm-trials", type=int, default=5)
+    args = ap.parse_args()
+    # warm-up: compile every numba kernel on a tiny problem
+    pl, _ = make_planner(80)
+    pl.solve()
+    hk.usable_fraction(padded_psi(pl), pl._state)
+    hk.plain_potential(pl._state, np.float64, max_sweeps=2)
+    hk.plain_potential(pl._state, np.float32, max_sweeps=2)
+    out = {k: {} for k in ("full_solve_ms", "warm_update_ms", "warm_update_ms_max", "warm_update_sweeps",
+                           "usable_gradient_fraction", "usable_after_10ms_warm_budget",
+                           "plain_float64_usable_gradient_fraction", "plain_float32_usable_gradient_fraction",
+                           "min_log_phi", "active_cells")}
+    for n in args.sizes:
+        r = bench_size(n, args.warm_trials)
+        key = f"{n}x{n}"
+        out["full_solve_ms"][key] = round(r["full_ms"], 2)
+        out["warm_update_ms"][key] = round(r["warm_ms"], 2)
+        out["warm_update_ms_max"][key] = round(r["warm_ms_max"], 2)
+        out["warm_update_sweeps"][key] = r["warm_sweeps"]
+        out["usable_gradient_fraction"][key] = round(r["usable"], 5)
+        out["usable_after_10ms_warm_budget"][key] = round(r["budget_usable"], 5)
+        out["plain_float64_usable_gradient_fraction"][key] = round(r["plain"]["float64"], 5)
+        out["plain_float32_usable_gradient_fraction"][key] = round(r["plain"]["float32"], 5)
+        out["min_log_phi"][key] = round(r["min_log_phi"], 1)
+        out["active_cells"][key] = r["active"]
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k}: {v}")
+
+
+if __name__ == "__main__":
+    main()
