@@ -111,10 +111,10 @@ def _bilinear(texels, off, w, h, x, y, wrap, weight):
     i01 = off + iy0 * w + ix1
     i10 = off + iy1 * w + ix0
     i11 = off + iy1 * w + ix1
-    w00 = (1 - fx) * (1 - fy) * weight
-    w01 = fx * (1 - fy) * weight
-    w10 = (1 - fx) * fy * weight
-    w11 = fx * fy * weight
+    w00 = np.float32((1 - fx) * (1 - fy) * weight)  # float32 weights: no per-texel conversions
+    w01 = np.float32(fx * (1 - fy) * weight)
+    w10 = np.float32((1 - fx) * fy * weight)
+    w11 = np.float32(fx * fy * weight)
     r = texels[i00, 0] * w00 + texels[i01, 0] * w01 + texels[i10, 0] * w10 + texels[i11, 0] * w11
     g = texels[i00, 1] * w00 + texels[i01, 1] * w01 + texels[i10, 1] * w10 + texels[i11, 1] * w11
     b = texels[i00, 2] * w00 + texels[i01, 2] * w01 + texels[i10, 2] * w10 + texels[i11, 2] * w11
