@@ -60,9 +60,8 @@ def _to_point(u, v, d, cam, out, i):
 @numba.njit(cache=True)
 def _local_mate(p, n, reach):
     """A random neighbour of ``p`` in the cell-ordered population: ±1…±reach places."""
-    off = np.random.randint(1, reach + 1)
-    if np.random.random() < 0.5:
-        off = -off
+    r = np.random.randint(0, 2 * reach)
+    off = r - reach if r < reach else r - reach + 1
     m = p + off
     if m < 0 or m >= n:
         m = p - off
@@ -94,12 +93,16 @@ def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigra
         p = parents[i]
         op = ops[i]
         out_sigma[i] = parent_sigma[i]
-        if mate_reach > 0:
-            m1 = _local_mate(p, n, mate_reach)
-            m2 = _local_mate(p, n, mate_reach)
-        else:
-            m1 = mates1[i]
-            m2 = mates2[i]
+        m1 = 0
+        m2 = 0
+        if op != MUTATION and op != IMMIGRANT:
+            if mate_reach > 0:
+                m1 = _local_mate(p, n, mate_reach)
+                if op == CROSSOVER3:
+                    m2 = _local_mate(p, n, mate_reach)
+            else:
+                m1 = mates1[i]
+                m2 = mates2[i]
         if op == MUTATION or op == EXCHANGE:
             u, v, d = _uvd(pos[p, 0], pos[p, 1], pos[p, 2], cam)
             if op == MUTATION:
