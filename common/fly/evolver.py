@@ -49,6 +49,8 @@ _MATE_REACH = 8          # crossover mates are within this many places in the ce
 _EXCHANGE_BEST_OF = 8    # depth exchange copies the fittest of this many such neighbours
 _NOISE_REFRESH_FRAMES = 30
 _AUTO_MIN_FLIES = 1000   # below this a parallel region is never worth it
+# What each kernel costs depends on the machine and its load, not on the evolver: one chooser per process.
+_KERNEL_CHOOSER = KernelChooser()
 _STEP_UP, _STEP_DOWN = 1.5, 0.85   # adaptive mutation: disparity step after a success / a failure
 
 
@@ -78,7 +80,7 @@ class FlyEvolver:
         self.sharing = SharingGrid(calib.width, calib.height, cell, config.sharing_strength)
         self._terms: dict[str, tuple[FitnessTerm, float]] = {}
         self._cam = camera_vector(calib)
-        self._chooser = KernelChooser()
+        self._chooser = _KERNEL_CHOOSER
         self._frame: PreparedFrame | None = None
         self._noise_sigma: float | None = None
         self._frames_since_noise = 0
