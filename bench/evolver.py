@@ -231,9 +231,10 @@ def main(argv=None) -> int:
         f"{os.cpu_count()} cores):")
     log(f"  fitness: {res['fly_evals_per_s'] / 1e6:.2f} M evals/s (shuffled {r5['random'] / 1e6:.2f}), "
         f"{res['speedup_vs_naive']}× naive numpy ({naive / 1e6:.3f} M/s)")
-    log(f"  scaling: " + ", ".join(f"{k} flies {v / 1e6:.2f} M/s" for k, v in res["scaling"].items()))
+    log("  scaling: " + ", ".join(f"{k} flies {v / 1e6:.2f} M/s" for k, v in res["scaling"].items()))
     log(f"  steady state: {gens:.1f} generations/s of 5,000 offspring")
-    log(f"  SGBM {sgbm_s * 1e3:.1f} ms (good {1 - sgbm_bad1:.3f}); flies: {res['inliers_at_sgbm_time']:.3f} "
+    log(f"  SGBM {sgbm_s * 1e3:.1f} ms (good {1 - sgbm_bad1:.3f} of known pixels, {1 - sgbm_bad1_valid:.3f} where "
+        f"it answered); flies: {res['inliers_at_sgbm_time']:.3f} "
         f"inliers at SGBM time, {res['inliers_at_1s']:.3f} at 1 s, 90 % after "
         f"{'never' if t90 is None else f'{t90:.3f} s'}")
     print(f"fly evals/s {res['fly_evals_per_s']}, naive {res['naive_numpy_fly_evals_per_s']}, "
