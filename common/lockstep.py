@@ -66,7 +66,7 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
         if stream == "stereo/calibration" and calib is None:
             calib = m.calibration_from_msg(msg)
             evolver = FlyEvolver(calib, evolver_config or EvolverConfig(depth_max=30.0), seed=seed)
-            localiser = FlyLocaliser(calib.T_base_camera, localiser_config, seed=seed)
+            localiser = FlyLocaliser(calib.T_base_camera, localiser_config, seed=seed, calibration=calib)
         elif stream == "odom/wheels" and msg.pose_xyyaw is not None:
             odom.add(msg.header.stamp_ns, planar_pose(*msg.pose_xyyaw))
         elif stream == "truth/pose":

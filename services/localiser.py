@@ -82,7 +82,8 @@ def body(node, args) -> int:
             if calib_msg[0] is None:
                 node.counters.add("populations_without_calibration")
                 continue
-            state["loc"] = FlyLocaliser(calib_msg[0].T_base_camera, config)
+            state["loc"] = FlyLocaliser(calib_msg[0].T_base_camera, config,
+                                        calibration=m.calibration_from_msg(calib_msg[0]))
         loc = state["loc"]
         stamp = pop.header.stamp_ns
         T_odom_base = None
