@@ -6,7 +6,8 @@ Figures (no pass/fail; noisy on a shared machine):
   image cell); ``fly_evals_per_s_random_order`` is the same flies shuffled;
 - naive_numpy_fly_evals_per_s: bench/naive_fly_fitness.py (numpy fancy indexing, same window, same
   normaliser, same sub-pixel sampling) on the same flies, same run; the two are checked to agree;
-- generations_per_s: steady state, 5,000 flies on the Middlebury motorcycle pair.  In steady-state mode a
+- generations_per_s: steady state, 5,000 flies on the Middlebury motorcycle pair (default config: the
+  evolver picks the serial or parallel kernel by measured cost, see common/fly/threads.py).  In steady-state mode a
   generation is N = population-size offspring, each made, evaluated and inserted (or rejected) — made in
   one batch: parents drawn for all N, children made and evaluated together, then inserted one by one;
 - sgbm_time_s: cv2.StereoSGBM (3-way, 64 disparities ⊇ the pair's 7–60 px) on the motorcycle pair;
