@@ -6,6 +6,7 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
     duration_s = 30                 # default bound; --duration overrides, 0 = until Ctrl-C
     latch = ["fusion/odom"]         # streams the supervisor keeps and serves to queries, so a restarted
                                     # service finds its last state on the bus though its publisher died
+    report = "pipeline"             # optional: print the pipeline summary (deploy/report.py) at the end
     [[service]]
     name = "recorder"
     module = "services.recorder"    # started as: python -m <module> <args> <bus flags>
@@ -80,6 +81,7 @@ class LaunchFile:
     robot: str | None = None
     vars: dict[str, str] = field(default_factory=dict)
     latch: list[str] = field(default_factory=list)
+    report: str | None = None
 
 
 def load_launch(path: Path) -> LaunchFile:
@@ -115,7 +117,11 @@ def load_launch(path: Path) -> LaunchFile:
     latch = run.get("latch", [])
     if not isinstance(latch, list) or not all(isinstance(k, str) for k in latch):
         raise LaunchError(f"{path}: [run] latch must be a list of stream names")
-    return LaunchFile(Path(path), float(run.get("duration_s", 0)), services, run.get("robot"), variables, latch)
+    report = run.get("report")
+    if report not in (None, "pipeline"):
+        raise LaunchError(f"{path}: [run] report must be \"pipeline\" or absent, got {report!r}")
+    return LaunchFile(Path(path), float(run.get("duration_s", 0)), services, run.get("robot"), variables, latch,
+                      report)
 
 
 # ----------------------------------------------------------------------------------- children
@@ -391,6 +397,11 @@ def main(argv=None) -> int:
     summary = sup.summary()
     (out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
     print(format_summary(summary))
+    if launch.report == "pipeline":
+        from deploy.report import format_pipeline_summary, pipeline_summary
+        pipeline = pipeline_summary(out)
+        (out / "summary.json").write_text(json.dumps(pipeline, indent=2))
+        print(format_pipeline_summary(pipeline))
     print(f"\noutput: {out}")
     return status
 

@@ -66,7 +66,7 @@ def simulate_to_recording(scenario: str, out: str | Path, seed: int = 0, seconds
     if truth_tum:
         import numpy as np
         write_tum(truth_tum, np.array(truth[0], np.int64), np.array(truth[1]))
-    return {"out": str(out), "frames": frames, "seconds": sim.time_ns * 1e-9, **options}
+    return {**options, "out": str(out), "frames": frames, "seconds": sim.time_ns * 1e-9}
 
 
 def cached_recording(scenario: str = "corridor", seed: int = 0, progress=None, **options) -> Path:

@@ -1,0 +1,90 @@
+"""The summary a person reads after `flyslam run` of the pipeline: what happened, how well, where the files are.
+
+Built from what the run left in its output folder: the supervisor's ``run.json`` (last heartbeat of every
+service), the trajectories (``estimated.tum``, ``truth.tum``) and the recording (the planner's last command).
+Anything missing is reported as missing, never guessed.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from common import messages as m
+from common.recording import RecordingError, RecordingReader
+from common.trajectory import TrajectoryFormatError, read_tum
+from common.trajectory_metrics import TrajectoryMismatch, evaluate
+
+
+def _last_command(recording: Path) -> tuple[m.VelocityCommand | None, int]:
+    last, count = None, 0
+    try:
+        for rec in RecordingReader(recording).messages():
+            if rec.key.endswith("/planner/cmd_vel"):
+                count += 1
+                try:
+                    last = m.decode(rec.payload, m.VelocityCommand)
+                except m.DecodeError:
+                    pass
+    except RecordingError:
+        pass
+    return last, count
+
+
+def pipeline_summary(out: Path) -> dict:
+    out = Path(out)
+    summary: dict = {"out": str(out)}
+    run = json.loads((out / "run.json").read_text()) if (out / "run.json").exists() else {}
+    services = run.get("services", {})
+    sim = services.get("sim", {})
+    evolver = services.get("evolver", {})
+    summary["frames"] = sim.get("progress")
+    summary["frames_used_by_evolver"] = evolver.get("progress")
+    rates = evolver.get("rates", {})
+    summary["frames_skipped"] = int(rates.get("frames_skipped", 0)) if rates else None
+    summary["generations_per_s"] = round(rates["generations_per_s"], 1) if "generations_per_s" in rates else None
+    summary["restarts"] = {name: s.get("restarts", 0) for name, s in services.items() if s.get("restarts")}
+    est_path, gt_path = out / "estimated.tum", out / "truth.tum"
+    if est_path.exists() and gt_path.exists():
+        try:
+            es, ep = read_tum(est_path)
+            gs, gp = read_tum(gt_path)
+            metrics = evaluate(es, ep, gs, gp, tolerance_ns=60_000_000)
+            summary["ate_rmse_m"] = round(metrics.ate_rmse_m, 3)
+            summary["path_length_m"] = round(metrics.path_length_m, 2)
+            summary["ate_pct_of_path"] = round(metrics.ate_pct_of_path, 2)
+        except (TrajectoryFormatError, TrajectoryMismatch, ValueError) as e:
+            summary["ate_error"] = str(e)
+    else:
+        summary["ate_error"] = "no estimated and ground-truth trajectories"
+    cmd, n_cmd = _last_command(out / "recording.mcap")
+    summary["commands"] = n_cmd
+    if cmd is not None:
+        summary["target"] = "reached" if cmd.reason == "target reached" else f"not reached: last command '{cmd.reason}'"
+    files = {"rerun": out / "run.rrd", "recording": out / "recording.mcap", "estimated": est_path,
+             "truth": gt_path, "logs": out / "logs"}
+    summary["files"] = {k: str(v) for k, v in files.items() if v.exists()}
+    return summary
+
+
+def format_pipeline_summary(s: dict) -> str:
+    def v(key, unit=""):
+        return "-" if s.get(key) is None else f"{s[key]}{unit}"
+    lines = ["", "pipeline summary",
+             f"  frames rendered      {v('frames')}",
+             f"  frames evolved       {v('frames_used_by_evolver')}  (skipped: {v('frames_skipped')})",
+             f"  generations/s        {v('generations_per_s')}"]
+    if "ate_rmse_m" in s:
+        lines.append(f"  ATE vs ground truth  {s['ate_rmse_m']} m RMSE over {s['path_length_m']} m "
+                     f"({s['ate_pct_of_path']} % of the path)")
+    else:
+        lines.append(f"  ATE vs ground truth  - ({s.get('ate_error')})")
+    lines.append(f"  target               {s.get('target', 'unknown (no planner command recorded)')}")
+    if s.get("restarts"):
+        lines.append(f"  restarts             {s['restarts']}")
+    lines.append("  files:")
+    lines += [f"    {k:<10} {p}" for k, p in s.get("files", {}).items()]
+    if "rerun" in s.get("files", {}):
+        lines.append(f"  view it:  .venv/bin/rerun {s['files']['rerun']}")
+    return "\n".join(lines)
