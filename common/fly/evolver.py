@@ -18,7 +18,7 @@ from every fly once per generation and compete with their own parent (determinis
 keeps its image niche and refines its depth); crossover children come from tournament or elitist parents
 and replace the loser of a reverse tournament when they are fitter; immigrants replace that loser
 unconditionally (they are how new objects get noticed).  Comparisons use the shared fitness (2-D sharing,
-``SharingGrid``).  Depth exchange relies on crowding: in generational mode keep ``exchange_rate`` low.
+``SharingGrid``).
 
 Generational: every generation builds a whole new population from selected parents; with 'elitist'
 selection the top ``elite_fraction`` survives unchanged.
