@@ -6,6 +6,9 @@ uncertainty is isotropic-ish — so that a Gaussian step has the same meaning ne
 All operators are one numba loop, ``make_offspring``, driven by random numbers drawn by the caller's numpy
 Generator (so a seeded evolver is reproducible).  The small public wrappers (``mutate``, ``crossover2``,
 ``crossover3``, ``exchange_depth``) call that same loop, so what the tests check is what the evolver runs.
+Inside the loops the draws come from numba's own generator, re-seeded at every call from the caller's
+Generator — other njit code in the process that relies on numba's global generator state will see it
+re-seeded.
 """
 from __future__ import annotations
 
