@@ -144,6 +144,11 @@ class FlyLocaliser:
             pts = pts[self._rng.choice(len(pts), self.config.max_map_points, replace=False)]
         return pts
 
+    def _distance_to_map(self, T_map_base: np.ndarray) -> float:
+        if not self.keyframes:
+            return np.inf
+        return float(min(np.linalg.norm(kf.T_map_base[:2, 3] - T_map_base[:2, 3]) for kf in self.keyframes))
+
     def _needs_keyframe(self, T_map_base: np.ndarray) -> bool:
         if not self.keyframes:
             return True
@@ -198,7 +203,10 @@ class FlyLocaliser:
 
         def finish(T_map_base, status, registered, cov, delta=float("nan")):
             added = False
-            if (registered or not self.keyframes) and len(points) >= c.min_flies and self._needs_keyframe(T_map_base):
+            # Registered poses extend the map; so does odometry when the map no longer covers the robot
+            # (a long featureless stretch), or the map would stop growing.
+            far = self._distance_to_map(T_map_base) > 2 * c.keyframe_distance_m
+            if (registered or far) and len(points) >= c.min_flies and self._needs_keyframe(T_map_base):
                 self._add_keyframe(stamp_ns, T_map_base, points, fit)
                 added = True
             if T_odom_base is not None:
@@ -214,15 +222,27 @@ class FlyLocaliser:
             return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies})", False, cov_pred)
         # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
         B = transform_points(invert(T_pred), self.local_map(T_pred))
-        window = c.window if source != "none" else (1.0, 1.0, np.deg2rad(20))
+        window = np.array(c.window if source != "none" else (1.0, 1.0, np.deg2rad(20)), dtype=float)
+
+        def register(win):
+            return register_planar(points, B, plane="body", window=tuple(win), eps=c.eps, weights_a=fit / fit.max(),
+                                   stereo=self.stereo, seed=int(stamp_ns % (2**31)))
         try:
-            res = register_planar(points, B, plane="body", window=window, eps=c.eps, weights_a=fit / fit.max(),
-                                  stereo=self.stereo, seed=int(stamp_ns % (2**31)))
+            res = register(window)
+            # A minimum on the window's edge in some parameters (typically along a corridor, where nothing
+            # pins the position) says nothing about them: pin them at the prediction and register the rest.
+            pinned = np.abs(res.params) > 0.98 * window if np.all(np.isfinite(res.params)) else np.zeros(3, bool)
+            if not res.ok and res.reason.startswith("minimum on the search window boundary") and not pinned.all():
+                res = register(np.where(pinned, 0.0, window))
+            else:
+                pinned = np.zeros(3, bool)
         except PopulationError as e:   # e.g. a degenerate map; odometry carries on
             return finish(T_pred, f"rejected: {e}", False, cov_pred)
         info = self._information(res)
         if info is None:
             return finish(T_pred, f"rejected: {res.reason}", False, cov_pred, res.delta)
+        info[pinned, :] = 0.0
+        info[:, pinned] = 0.0
         fused = self._fuse_with_prior(res.params, info, source)
         if fused is None:
             return finish(T_pred, "rejected: registration disagrees with odometry beyond the gate", False,

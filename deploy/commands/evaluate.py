@@ -20,6 +20,7 @@ from common.lockstep import run_lockstep
 from common.recording import RecordingError, RecordingReader
 from common.trajectory import write_tum
 from common.trajectory_metrics import TrajectoryMismatch, evaluate
+from deploy.progress import Progress
 
 
 def plot(path: Path, result, odom_in_map) -> None:
@@ -63,13 +64,15 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
+    bar = Progress("eval")
+
     def progress(n, status):
-        print(f"\r[eval] frame {n}: {status[:60]:<60}", end="", file=sys.stderr, flush=True)
+        bar.update(n, f"frames, last: {status[:50]}")
 
     result = run_lockstep(reader.messages(), generations_per_frame=args.generations, seed=args.seed,
                           evolver_config=EvolverConfig(population=args.population, depth_max=30.0),
                           max_frames=args.max_frames, progress=progress)
-    print(file=sys.stderr)
+    bar.done()
     if reader.error:
         print(f"flyslam eval: warning: {args.recording}: {reader.error}; evaluated the readable part", file=sys.stderr)
     if result.frames == 0:

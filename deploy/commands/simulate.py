@@ -11,6 +11,7 @@ import time
 
 from common.sim.offline import simulate_to_recording
 from common.sim.scenario import ScenarioError
+from deploy.progress import Progress
 
 
 def main(argv=None) -> int:
@@ -29,11 +30,10 @@ def main(argv=None) -> int:
     p.add_argument("--truth-tum", default=None, help="also write the ground-truth trajectory as TUM text")
     args = p.parse_args(argv)
     t0 = time.monotonic()
+    bar = Progress("simulate")
 
     def progress(sim_s, frames):
-        if frames % 10 == 0:
-            print(f"\r[simulate] {sim_s:6.1f} s simulated, {frames} frames, {time.monotonic() - t0:5.1f} s",
-                  end="", file=sys.stderr, flush=True)
+        bar.update(frames, f"frames, {sim_s:.1f} s simulated")
 
     try:
         summary = simulate_to_recording(args.scenario, args.out, seed=args.seed, seconds=args.seconds, fps=args.fps,
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     except (ScenarioError, FileNotFoundError) as e:
         print(f"flyslam simulate: {e}", file=sys.stderr)
         return 2
-    print(file=sys.stderr)
+    bar.done()
     print(f"wrote {summary['frames']} frames ({summary['seconds']:.1f} s simulated, {summary['width']}×{summary['height']}, "
           f"{summary['encoding']}) to {summary['out']} in {time.monotonic() - t0:.1f} s")
     return 0

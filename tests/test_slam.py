@@ -1,0 +1,98 @@
+"""The localiser: beats miscalibrated odometry on a simulated corridor; falls back to odometry and says
+so when it cannot register; keeps a bounded map."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from common.fly import EvolverConfig, FlyEvolver
+from common.geometry import R_BODY_OPTICAL, invert, make_transform, planar_from_transform, planar_pose, transform_points
+from common.pose_buffer import PoseBuffer
+from common.sim import Simulator, load_scenario
+from common.sim.scenario import scenario_path
+from common.sim.sensors import OdometryReading
+from common.sim.simulator import CameraDue
+from common.slam import FlyLocaliser, LocaliserConfig, LocaliserError
+
+
+def corridor_points(rng, n, x0=0.0, length=10.0):
+    """Flies on two corridor walls (y = ±1) with a few boxes, in base_link-like coordinates (z up)."""
+    side = rng.choice([-1.0, 1.0], n)
+    pts = np.stack([rng.uniform(x0, x0 + length, n), side, rng.uniform(0.1, 2.0, n)], 1)
+    box = rng.random(n) < 0.2
+    pts[box, 1] = side[box] * 0.7
+    pts[box, 0] = np.round(pts[box, 0])
+    return pts
+
+
+def test_localiser_beats_miscalibrated_odometry_on_the_simulated_corridor():
+    scn = load_scenario(scenario_path("corridor"))
+    scn.odometry = replace(scn.odometry, radius_error_left=0.01, radius_error_right=0.03, track_error=0.04)
+    sim = Simulator(scn, seed=3, width=320, height=240, camera_rate_hz=5)
+    cal = sim.calibration
+    evolver = FlyEvolver(cal, EvolverConfig(population=3000, depth_max=30.0), seed=0)
+    loc = FlyLocaliser(cal.T_base_camera, LocaliserConfig(), calibration=cal)
+    odom = PoseBuffer(maxlen=10_000)
+    last = None
+    odo_err, est_err, statuses = [], [], []
+    while len(statuses) < 45:
+        for ev in sim.advance(0.02):
+            if isinstance(ev, OdometryReading):
+                odom.add(ev.stamp_ns, planar_pose(*ev.pose_xyyaw_integrated))
+            elif isinstance(ev, CameraDue):
+                frame = sim.render(ev.stamp_ns)
+                T_odom_base = odom.at(ev.stamp_ns)
+                if T_odom_base is None:
+                    continue
+                T_cam = T_odom_base @ cal.T_base_camera
+                if last is not None:
+                    evolver.move_flies(invert(T_cam) @ last)
+                last = T_cam
+                evolver.set_images(frame.left, frame.right)
+                evolver.step(30)
+                est = loc.update(ev.stamp_ns, evolver.positions, evolver.fitness, T_odom_base)
+                statuses.append(est.status)
+                # odom starts at the robot's start pose = map origin here
+                odo_err.append(np.hypot(*planar_from_transform(invert(frame.T_map_base) @ T_odom_base)[:2]))
+                est_err.append(np.hypot(*planar_from_transform(invert(frame.T_map_base) @ est.T_map_base)[:2]))
+    odo_rms, est_rms = np.sqrt(np.mean(np.square(odo_err))), np.sqrt(np.mean(np.square(est_err)))
+    ok = np.mean([s == "ok" for s in statuses])
+    print(f"\nposition RMS: odometry {odo_rms:.3f} m, localiser {est_rms:.3f} m; registered {100 * ok:.0f} % of frames")
+    assert ok > 0.5
+    assert est_rms < 0.6 * odo_rms
+
+
+T_BASE_CAMERA = make_transform(R_BODY_OPTICAL, [0.0, 0.0, 0.4])
+
+
+def seen_from(T_map_base, pts_map):
+    """Map points as the camera of a robot at T_map_base sees them (left optical frame), in front only."""
+    cam = transform_points(invert(T_map_base @ T_BASE_CAMERA), pts_map)
+    return cam[cam[:, 2] > 0.5]
+
+
+def test_unusable_population_lets_odometry_carry_on_and_says_why():
+    rng = np.random.default_rng(0)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
+    cam = seen_from(planar_pose(0, 0, 0), corridor_points(rng, 4000))
+    first = loc.update(0, cam, np.ones(len(cam)), planar_pose(0, 0, 0))
+    assert first.status == "initialised" and len(loc.keyframes) == 1
+    few = loc.update(10**8, cam[:20], np.ones(20), planar_pose(0.3, 0.0, 0.0))
+    assert not few.registered and few.status.startswith("odometry only")
+    assert np.allclose(few.T_map_base, planar_pose(0.3, 0, 0))
+    with pytest.raises(LocaliserError):
+        loc.update(2 * 10**8, cam, np.ones(len(cam)), np.full((4, 4), np.nan))
+
+
+def test_map_memory_stays_bounded():
+    rng = np.random.default_rng(1)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(max_keyframes=5, keyframe_distance_m=0.3))
+    world = corridor_points(rng, 40000, length=25.0)
+    for k in range(30):
+        T = planar_pose(0.5 * k, 0.0, 0.0)
+        cam = seen_from(T, world)
+        loc.update(k * 10**8, cam, np.ones(len(cam)), T)
+    assert len(loc.keyframes) == 5
+    assert sum(len(kf.points) for kf in loc.keyframes) <= 5 * 40000
