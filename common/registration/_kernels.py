@@ -107,7 +107,7 @@ def exact_field_value(Q, B, wb, eps):
 
 
 # ----------------------------------------------------------------------------------- grid building
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def cic_deposit(P, w, lo, h, shape):
     """Cloud-in-cell (trilinear) deposit of weights w at points P onto a grid starting at lo."""
     rho = np.zeros((shape[0], shape[1], shape[2]))
@@ -131,48 +131,44 @@ def cic_deposit(P, w, lo, h, shape):
     return rho
 
 
-@njit(cache=True)
-def build_cells(B, lo, cell, dims):
-    """Column list: B sorted by x-y column (cell size `cell`) and, within a column, by z.
+@njit(cache=True, error_model="numpy")
+def build_cells(B, wb, lo, cell, dims):
+    """3-D cell list of B: flies sorted by cell (x-major, then y, then z), as float32 SoA.
 
-    Returns the order and the start offset of every column (flattened x-major, +1 at the end).  Only
-    x-y columns are tabulated (a few 10⁴ entries that stay in cache); the z run inside a column is
-    found by binary search.  A dense 3-D cell table at r_c/2 ran to millions of entries and every
-    query paid cache misses on it.
+    Returns (Bs (3, p) float32 coordinates relative to `lo`, their weights (p,) float32, start
+    (n_cells + 1,) int32 offsets).  Cells of one x-y column are consecutive, so the flies of a z-range
+    of cells in a column are one contiguous run: a query reads 2 offsets per column and scans a
+    contiguous, vectorisable run (the earlier x-y column list binary-searched z in every column, and
+    that search cost more than the distances it saved).
     """
     p = B.shape[0]
-    col = np.empty(p, dtype=np.int64)
+    ncell = dims[0] * dims[1] * dims[2]
+    cid = np.empty(p, dtype=np.int64)
     for j in range(p):
         cx = min(max(int(np.floor((B[j, 0] - lo[0]) / cell)), 0), dims[0] - 1)
         cy = min(max(int(np.floor((B[j, 1] - lo[1]) / cell)), 0), dims[1] - 1)
-        col[j] = cx * dims[1] + cy
-    zmin = B[:, 2].min()
-    zspan = B[:, 2].max() - zmin + 1.0
-    key = col.astype(np.float64) * zspan + (B[:, 2] - zmin)
-    order = np.argsort(key, kind="mergesort")
-    ncol = dims[0] * dims[1]
-    start = np.zeros(ncol + 1, dtype=np.int64)
+        cz = min(max(int(np.floor((B[j, 2] - lo[2]) / cell)), 0), dims[2] - 1)
+        cid[j] = (cx * dims[1] + cy) * dims[2] + cz
+    start = np.zeros(ncell + 1, dtype=np.int32)
     for j in range(p):
-        start[col[j] + 1] += 1
-    for c in range(ncol):
+        start[cid[j] + 1] += 1
+    for c in range(ncell):
         start[c + 1] += start[c]
-    return order, start
-
-
-@njit(cache=True, inline="always")
-def _lower_bound(z, j0, j1, v):
-    """First index j in [j0, j1) with z[j] >= v (z sorted ascending on that range)."""
-    while j0 < j1:
-        m = (j0 + j1) >> 1
-        if z[m] < v:
-            j0 = m + 1
-        else:
-            j1 = m
-    return j0
+    fill = start[:-1].copy()
+    Bs = np.empty((3, p), dtype=np.float32)
+    ws = np.empty(p, dtype=np.float32)
+    for j in range(p):
+        k = fill[cid[j]]
+        fill[cid[j]] += 1
+        Bs[0, k] = B[j, 0] - lo[0]
+        Bs[1, k] = B[j, 1] - lo[1]
+        Bs[2, k] = B[j, 2] - lo[2]
+        ws[k] = wb[j]
+    return Bs, ws, start
 
 
 # ------------------------------------------------------------------------------------- evaluation
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _cr_weights(t):
     """Catmull-Rom weights of nodes -1, 0, 1, 2 at fraction t, and their derivatives."""
     t2 = t * t
@@ -188,7 +184,7 @@ def _cr_weights(t):
     return (w0, w1, w2, w3), (d0, d1, d2, d3)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _interp(grid, lo, h, qx, qy, qz, want_grad):
     """Tricubic (Catmull-Rom) value of `grid` at q and its analytic gradient; inside flag.
 
@@ -235,65 +231,86 @@ def _interp(grid, lo, h, qx, qy, qz, want_grad):
     return True, s, gx / h, gy / h, gz / h
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy")
 def _near_at(qx, qy, qz, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     """Σ_j w_j (K − K_far)(|q − b_j|) over B's flies within r_c of q, and its gradient.
 
     K − K_far is a compact bump (1/ε − K_far(0) at 0, zero with zero slope at r_c): the near-field
     correction of the fast δ, and on its own the kernel of the local correlation objective.
+    Float32 inside (coordinates relative to the cell list's corner: ≈1e-6 relative error per term),
+    accumulated per run into float64.
     """
     s = 0.0
     dx = 0.0
     dy = 0.0
     dz = 0.0
-    dc = eps + rc
-    kc = 1.0 / dc                   # K(r_c)
-    c1 = 1.0 / (2.0 * rc * dc * dc)  # K_far(r) = kc − (r² − r_c²)·c1 inside r_c
-    c2 = 2.0 * c1                    # −K_far'(r)/r inside r_c
-    # Column list with column width `cell`: visit only the x-y columns within r_c of q and, in
-    # each, the z-sorted run [qz − rz, qz + rz] found by binary search (rz: the sphere's half-chord).
+    px = qx - clo[0]
+    py = qy - clo[1]
+    pz = qz - clo[2]
     rc2 = rc * rc
-    x0 = max(int(np.floor((qx - rc - clo[0]) / cell)), 0)
-    x1 = min(int(np.floor((qx + rc - clo[0]) / cell)), dims[0] - 1)
-    y0 = max(int(np.floor((qy - rc - clo[1]) / cell)), 0)
-    y1 = min(int(np.floor((qy + rc - clo[1]) / cell)), dims[1] - 1)
-    Bz = Bs[2]
+    x0 = max(int(np.floor((px - rc) / cell)), 0)
+    x1 = min(int(np.floor((px + rc) / cell)), dims[0] - 1)
+    y0 = max(int(np.floor((py - rc) / cell)), 0)
+    y1 = min(int(np.floor((py + rc) / cell)), dims[1] - 1)
+    if x0 > x1 or y0 > y1 or pz + rc < 0.0 or pz - rc > dims[2] * cell:
+        return s, dx, dy, dz
+    dc = eps + rc
+    kc = np.float32(1.0 / dc)                    # K(r_c)
+    c1 = np.float32(1.0 / (2.0 * rc * dc * dc))  # K_far(r) = kc − (r² − r_c²)·c1 inside r_c
+    c2 = np.float32(1.0 / (rc * dc * dc))        # −K_far'(r)/r inside r_c
+    e32 = np.float32(eps)
+    r32 = np.float32(rc2)
+    fx = np.float32(px)
+    fy = np.float32(py)
+    fz = np.float32(pz)
+    nz = dims[2]
+    bx = Bs[0]
+    by = Bs[1]
+    bz = Bs[2]
     for ax in range(x0, x1 + 1):
-        ddx = max(clo[0] + ax * cell - qx, qx - (clo[0] + (ax + 1) * cell), 0.0)
+        ddx = max(ax * cell - px, px - (ax + 1) * cell, 0.0)
         for ay in range(y0, y1 + 1):
-            ddy = max(clo[1] + ay * cell - qy, qy - (clo[1] + (ay + 1) * cell), 0.0)
+            ddy = max(ay * cell - py, py - (ay + 1) * cell, 0.0)
             d2 = ddx * ddx + ddy * ddy
             if d2 >= rc2:
                 continue
-            c = ax * dims[1] + ay
-            j0 = start[c]
-            j1 = start[c + 1]
-            if j0 == j1:
-                continue
             rz = np.sqrt(rc2 - d2)
-            ja = _lower_bound(Bz, j0, j1, qz - rz)
-            jb = _lower_bound(Bz, ja, j1, qz + rz)
-            # Branch-free body over a contiguous run of SoA coordinates: LLVM vectorises it.
-            # Inside r_c, K_far is a polynomial in r², so only K itself needs the square root.
+            z0 = max(int(np.floor((pz - rz) / cell)), 0)
+            z1 = min(int(np.floor((pz + rz) / cell)), nz - 1)
+            if z0 > z1:
+                continue
+            base = (ax * dims[1] + ay) * nz
+            ja = np.uint64(start[base + z0])
+            jb = np.uint64(start[base + z1 + 1])
+            # Branch-free body over a contiguous SoA run: LLVM vectorises it.  Inside r_c, K_far is
+            # a polynomial in r², so only K itself needs the square root.
+            ss = np.float32(0.0)
+            sx = np.float32(0.0)
+            sy = np.float32(0.0)
+            sz = np.float32(0.0)
             for j in range(ja, jb):
-                ex = qx - Bs[0, j]
-                ey = qy - Bs[1, j]
-                ez = qz - Bs[2, j]
+                ex = fx - bx[j]
+                ey = fy - by[j]
+                ez = fz - bz[j]
                 r2 = ex * ex + ey * ey + ez * ez
-                inside = r2 < rc2
+                w = wbs[j] if r2 < r32 else np.float32(0.0)
                 r = np.sqrt(r2)
-                inv = 1.0 / (eps + r)
-                w = wbs[j] if inside else 0.0
-                s += w * (inv - (kc - (r2 - rc2) * c1))
+                inv = np.float32(1.0) / (e32 + r)
+                ss += w * (inv - (kc - (r2 - r32) * c1))
                 if want_grad:
-                    f = w * (c2 - inv * inv / max(r, 1e-12))
-                    dx += f * ex
-                    dy += f * ey
-                    dz += f * ez
+                    f = w * (c2 - inv * inv / max(r, np.float32(1e-12)))
+                    sx += f * ex
+                    sy += f * ey
+                    sz += f * ez
+            s += ss
+            if want_grad:
+                dx += sx
+                dy += sy
+                dz += sz
     return s, dx, dy, dz
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell,
               dims, near, want_grad):
     """Fast S_B(q) and ∇S_B(q): far field from the grid + exact near correction.
@@ -328,7 +345,7 @@ def _field_at(qx, qy, qz, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell
     return s, dx, dy, dz, False
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def fast_field(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, near, want_grad):
     """S_B and ∇S_B at every row of Q (parallel over Q); also how many rows fell outside the grid."""
     n = Q.shape[0]
@@ -346,7 +363,7 @@ def fast_field(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, 
     return S, G, outside.sum()
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def fast_field_serial(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, near, want_grad):
     """S_B and ∇S_B at every row of Q (serial: predictable on a busy machine); also how many rows fell outside the grid."""
     n = Q.shape[0]
@@ -364,7 +381,7 @@ def fast_field_serial(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell,
     return S, G, outside.sum()
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims,
                 near):
     """Σᵢ wa_i / S_B(Rᵀ(a_i − t)) for every candidate (R, t): the un-normalised δ(A, f(B)).
@@ -392,7 +409,7 @@ def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo,
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def near_field(Q, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     """The near sum of `_near_at` at every row of Q (serial), with gradients (n, 3)."""
     n = Q.shape[0]
@@ -408,7 +425,7 @@ def near_field(Q, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     return S, G
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def batch_near(A, wa, Rs, ts, Bs, wbs, start, clo, cell, dims, eps, rc):
     """Σᵢ wa_i · near-sum(Rᵀ(a_i − t)) for every candidate (R, t) (serial, see batch_delta)."""
     m = Rs.shape[0]

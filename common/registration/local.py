@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _kernels
+from .cells import CellList
 from .pseudo_distance import PopulationError, as_population, as_weights, check_eps
 
 
@@ -30,22 +31,15 @@ class LocalCorrelationField:
             raise PopulationError(f"radius must be a positive distance, got {radius}")
         self.wb = as_weights(weights_b, len(self.B), "weights_b")
         self.weight_sum = float(self.wb.sum())
-        self.cell = self.rc  # column width of the near-field column list
-        self.cell_lo = self.B.min(0)
-        span = (self.B.max(0) - self.cell_lo) / self.cell
-        if np.prod(span[:2] + 1) > 5e7:
+        span = self.B.max(0) - self.B.min(0)
+        if np.prod(span / self.rc + 1) > 5e7:
             raise PopulationError(f"radius {radius} m is too small for a population spanning "
-                                  f"{np.round(span * self.cell, 1).tolist()} m")
-        self.cell_dims = np.floor(span).astype(np.int64) + 1
-        self.cell_dims[2] = 1  # columns: x-y only
-        order, self.start = _kernels.build_cells(self.B, self.cell_lo, self.cell, self.cell_dims)
-        self.B_sorted = np.ascontiguousarray(self.B[order].T)  # (3, p): SoA for the vector loop
-        self.wb_sorted = np.ascontiguousarray(self.wb[order])
+                                  f"{np.round(span, 1).tolist()} m")
+        self.cells = CellList(self.B, self.wb, self.rc)
         self.last_outside = 0
 
     def _args(self):
-        return (self.B_sorted, self.wb_sorted, self.start, self.cell_lo, self.cell, self.cell_dims,
-                self.eps, self.rc)
+        return (*self.cells.args(), self.eps, self.rc)
 
     def field(self, Q, with_grad: bool = False, near: bool = True):
         Q = as_population(Q, "Q", allow_empty=True)
