@@ -83,7 +83,7 @@ class PseudoDistanceField:
 
     def __init__(self, B, eps, weights_b=None, bounds=None, spacing=None, max_cells: int = 120_000,
                  near_cells: float = 2.0, deconvolve: bool = True, parallel_min: int = 50_000,
-                 cells_per_radius: float = 1.0):
+                 cells_per_radius: float = 0.5):
         self.B = as_population(B, "B")
         self.eps = check_eps(eps)
         self.parallel_min = int(parallel_min)
@@ -154,6 +154,10 @@ class PseudoDistanceField:
         the registration's coarse-to-fine search.
         """
         Q = as_population(Q, "Q", allow_empty=True)
+        if not with_grad and len(Q) < self.parallel_min:
+            S, out = _kernels.fast_values(Q, *self._args(near))
+            self.last_outside = int(out)
+            return S
         kern = _kernels.fast_field if len(Q) >= self.parallel_min else _kernels.fast_field_serial
         S, G, out = kern(Q, *self._args(near), with_grad)
         self.last_outside = int(out)
