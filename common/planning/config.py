@@ -41,6 +41,8 @@ class PlannerConfig:
     sor_omega: float = 1.9
     tolerance: float = 1e-4              # largest relative change of phi per sweep counted as converged
     sweeps_per_check: int = 4
+    coarse_block: int = 4                # block size of the correction applied after a map change; <=1: off
+    blend_sweeps: int = 2                # Gauss-Seidel sweeps after that correction
     max_sweeps: int = 20000
     # Controller.
     v_max: float = 0.5

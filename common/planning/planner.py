@@ -23,6 +23,7 @@ import numpy as np
 
 from . import harmonic as hk
 from .config import Command, PlannerConfig, PlannerInputError, SolveReport
+from .aggregation import block_factors
 from .controller import heading_command
 from .occupancy import EvidenceGrid
 
@@ -138,6 +139,14 @@ class HarmonicPlanner:
         self._state = new_state
         self._cells = np.flatnonzero(active.ravel())
         self._weights = hk.scaled_weights(self._s, self._state, self._cells)
+        if self.cfg.coarse_block > 1 and self._cells.size >= 8 * self.cfg.coarse_block ** 2:
+            # One multiplicative block correction (aggregation.py): moves whole regions by the factor a
+            # change of the map implies (SOR alone would need hundreds of sweeps to carry it across the
+            # map), then Gauss-Seidel sweeps (no over-relaxation) to blend the block edges.
+            agg, logq = block_factors(self._cells, self._weights, self._s, new_state, self.cfg.coarse_block)
+            self._s.ravel()[self._cells] += logq[agg]
+            self._weights = hk.scaled_weights(self._s, self._state, self._cells)
+            hk.scaled_ssor(self._r, self._weights, self._cells, 1.0, self.cfg.blend_sweeps)
         self._status = "ok"
         self._has_solution = True
 
