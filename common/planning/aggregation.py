@@ -14,6 +14,11 @@ system ``r = W r + b`` is the similarity transform ``D^-1 A D`` (D = diag(exp(s)
 ``R = P^T diag(exp(2 (s - s_block)))`` (the symmetric projection, scaled per block so nothing underflows).
 It is an M-matrix with b >= 0, so the factors q are positive and accurate however small, and
 ``s += log q[block]`` moves whole regions by the right factor at once.  SOR then repairs the detail.
+
+The planner applies it once after every change of the map (and on a cold start), followed by a couple of
+Gauss-Seidel sweeps to blend the block edges.  Repeating it every few sweeps does not converge faster:
+with over-relaxed SOR between corrections the block edges keep re-exciting the error, and with plain
+Gauss-Seidel the two-level cycle contracts only ~0.7 per cycle (measured; see the report).
 """
 from __future__ import annotations
 
