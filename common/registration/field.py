@@ -61,6 +61,26 @@ def _far_kernel_spectrum(fft_shape, h, eps, rc, deconvolve):
     return khat
 
 
+def _convolve_zero_padded(rho, khat, fft_shape) -> np.ndarray:
+    """Linear convolution of rho (s0, s1, s2) with the kernel whose rfftn is khat, cropped to rho's
+    shape, as float64.
+
+    rfftn/irfftn axis by axis, skipping the zero padding: the forward transforms along z and y run
+    only over rho's rows (¼ and ½ of the padded volume) and the inverse ones only over the rows that
+    are kept.  Same result as irfftn(rfftn(rho, fft_shape) · khat)[:s0, :s1, :s2], ≈40 % less work.
+    """
+    s0, s1, s2 = rho.shape
+    F0, F1, F2 = fft_shape
+    a = scipy.fft.rfft(rho, n=F2, axis=2, workers=-1)
+    a = scipy.fft.fft(a, n=F1, axis=1, workers=-1, overwrite_x=True)
+    a = scipy.fft.fft(a, n=F0, axis=0, workers=-1, overwrite_x=True)
+    a *= khat
+    a = scipy.fft.ifft(a, axis=0, workers=-1, overwrite_x=True)[:s0]
+    a = scipy.fft.ifft(a, axis=1, workers=-1)[:, :s1]
+    out = scipy.fft.irfft(a, n=F2, axis=2, workers=-1)[:, :, :s2]
+    return np.ascontiguousarray(out, dtype=np.float64)
+
+
 class PseudoDistanceField:
     """B's field S_B, prebuilt for fast δ(A, B) and its gradient with respect to A's points.
 
@@ -123,10 +143,7 @@ class PseudoDistanceField:
         rho = _kernels.cic_deposit(self.B, self.wb, self.lo, h, shape)
         fft_shape = tuple(scipy.fft.next_fast_len(2 * s - 1, real=True) for s in self.shape)
         khat = _far_kernel_spectrum(fft_shape, h, self.eps, self.rc, bool(deconvolve))
-        conv = scipy.fft.irfftn(scipy.fft.rfftn(rho.astype(np.float32), fft_shape, workers=-1) * khat,
-                                fft_shape, workers=-1)
-        self.grid = np.ascontiguousarray(conv[:self.shape[0], :self.shape[1], :self.shape[2]],
-                                         dtype=np.float64)
+        self.grid = _convolve_zero_padded(rho.astype(np.float32), khat, fft_shape)
 
         # Near field: 3-D cell list of B (cells of side r_c / cells_per_radius).
         self.cells = CellList(self.B, self.wb, self.rc, cells_per_radius)
@@ -153,15 +170,20 @@ class PseudoDistanceField:
         ``near=False`` returns the far part alone: B's field smoothed within r_c, the coarse level of
         the registration's coarse-to-fine search.
         """
-        Q = as_population(Q, "Q", allow_empty=True)
+        S, G = self._field(as_population(Q, "Q", allow_empty=True), with_grad, near)
+        return (S, G) if with_grad else S
+
+    def _field(self, Q, with_grad: bool, near: bool):
+        """(S, G or None) at the rows of Q, a validated (n, 3) float64 C array (no checks: the
+        registration's inner loop calls this some 100 times per registration)."""
         if not with_grad and len(Q) < self.parallel_min:
             S, out = _kernels.fast_values(Q, *self._args(near))
             self.last_outside = int(out)
-            return S
+            return S, None
         kern = _kernels.fast_field if len(Q) >= self.parallel_min else _kernels.fast_field_serial
         S, G, out = kern(Q, *self._args(near), with_grad)
         self.last_outside = int(out)
-        return (S, G) if with_grad else S
+        return S, (G if with_grad else None)
 
     def delta(self, A, weights_a=None) -> float:
         """δ(A, B) (δ_w with weights), fast."""

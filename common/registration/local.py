@@ -42,9 +42,12 @@ class LocalCorrelationField:
         return (*self.cells.args(), self.eps, self.rc)
 
     def field(self, Q, with_grad: bool = False, near: bool = True):
-        Q = as_population(Q, "Q", allow_empty=True)
-        S, G = _kernels.near_field(Q, *self._args(), with_grad)
+        S, G = self._field(as_population(Q, "Q", allow_empty=True), with_grad, near)
         return (S, G) if with_grad else S
+
+    def _field(self, Q, with_grad: bool, near: bool = True):
+        """(S, G) at the rows of a validated (n, 3) float64 C array Q (no checks; see field.py)."""
+        return _kernels.near_field(Q, *self._args(), with_grad)
 
     def correlation(self, A, weights_a=None) -> float:
         """C(A, B) of the module docstring."""

@@ -57,6 +57,7 @@ import scipy.ndimage
 
 from ..camera import StereoCalibration
 from ..geometry import make_transform, rot_y, rot_z, so3_exp, so3_log
+from . import _kernels
 from .field import PseudoDistanceField
 from .local import LocalCorrelationField
 from .pseudo_distance import PopulationError, as_population, as_weights, check_eps
@@ -113,8 +114,20 @@ def _params_from_T(mode: str, T: np.ndarray) -> np.ndarray:
 _POSES = {"optical": _pose_optical, "body": _pose_body, "6dof": _pose_6dof}
 
 
+_K_Y = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])   # d rot_y(θ)/dθ = rot_y(θ) @ _K_Y
+_K_Z = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])   # d rot_z(θ)/dθ = rot_z(θ) @ _K_Z
+_PLANAR_DT = {"optical": np.array([[1.0, 0, 0], [0, 0, 1], [0, 0, 0]]),
+              "body": np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 0]])}
+
+
 def _pose_jacobians(pose, p, step=1e-6):
-    """dR/dp_k (k, 3, 3) and dt/dp_k (k, 3) by central differences of the (cheap) param→pose map."""
+    """dR/dp_k (k, 3, 3) and dt/dp_k (k, 3): analytic for the planar poses, else central differences
+    of the (cheap) param→pose map."""
+    if pose is _pose_optical or pose is _pose_body:
+        R = pose(p)[0]
+        dR = np.zeros((3, 3, 3))
+        dR[2] = R @ (_K_Y if pose is _pose_optical else _K_Z)
+        return dR, _PLANAR_DT["optical" if pose is _pose_optical else "body"]
     k = len(p)
     dR = np.empty((k, 3, 3))
     dt = np.empty((k, 3))
@@ -156,17 +169,17 @@ class _Objective:
     def value(self, p) -> float:
         self.count += 1
         _, _, _, Q = self._points(p)
-        return float(self._terms(self.field.field(Q, near=self.near))[0].sum())
+        return float(self._terms(self.field._field(Q, False, self.near)[0])[0].sum())
 
     def per_fly(self, p):
         """(J, per-fly gradients (n, k)) at p."""
         self.count += 1
         R, t, D, Q = self._points(p)
-        S, G = self.field.field(Q, with_grad=True, near=self.near)
+        S, G = self.field._field(Q, True, self.near)
         c, Gq = self._terms(S, G)                       # cᵢ and ∂cᵢ/∂qᵢ
         dR, dt = _pose_jacobians(self.pose, p)
         # ∂qᵢ/∂p_k = dR_kᵀ(aᵢ − t) − Rᵀ dt_k ; as rows: dᵢ @ dR_k − dt_k @ R
-        J = np.stack([np.einsum("ij,ij->i", Gq, D @ dR[k] - dt[k] @ R) for k in range(len(p))], 1)
+        J = _kernels.param_gradients(D, dR, np.ascontiguousarray(dt @ R), np.ascontiguousarray(Gq))
         return float(c.sum()), J
 
     def translation_hessian(self, p, step):
@@ -178,7 +191,7 @@ class _Objective:
             e[i] = step
             g = []
             for sgn in (1, -1):
-                S, G = self.field.field(Q + sgn * e, with_grad=True, near=self.near)
+                S, G = self.field._field(Q + sgn * e, True, self.near)
                 g.append(self._terms(S, G)[1].sum(0))
             H[i] = (g[0] - g[1]) / (2 * step)
         return 0.5 * (H + H.T)
@@ -235,18 +248,47 @@ def _lattice(center, half, counts):
     return np.stack([m.ravel() for m in mesh], 1), tuple(len(a) for a in axes)
 
 
-def _reach_bounds(A, poses):
-    """Bounding box of f⁻¹(A) over a list of (R, t): where the field will be read."""
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
+def _poses_batch(mode: str, P: np.ndarray):
+    """Rotations (m, 3, 3) and translations (m, 3) of every row of params P, vectorised (the lattice
+    holds 343 planar or 3,375 6-DoF candidates; one Python pose call each cost milliseconds)."""
+    m = len(P)
+    Rs = np.zeros((m, 3, 3))
+    ts = np.zeros((m, 3))
+    if mode in PLANES:
+        c, s = np.cos(P[:, 2]), np.sin(P[:, 2])
+        if mode == "optical":      # rot_y, t = (x, 0, z)
+            Rs[:, 0, 0], Rs[:, 0, 2], Rs[:, 1, 1], Rs[:, 2, 0], Rs[:, 2, 2] = c, s, 1.0, -s, c
+            ts[:, 0], ts[:, 2] = P[:, 0], P[:, 1]
+        else:                      # rot_z, t = (x, y, 0)
+            Rs[:, 0, 0], Rs[:, 0, 1], Rs[:, 1, 0], Rs[:, 1, 1], Rs[:, 2, 2] = c, -s, s, c, 1.0
+            ts[:, 0], ts[:, 1] = P[:, 0], P[:, 1]
+        return Rs, ts
+    w = P[:, 3:]
+    th = np.linalg.norm(w, axis=1)
+    k = w / np.where(th > 1e-12, th, 1.0)[:, None]
+    small = th <= 1e-12                     # so3_exp: I + [w]ₓ for tiny angles, Rodrigues otherwise
+    K = np.where(small[:, None, None], _skew_batch(w), _skew_batch(k))
+    sin_t = np.where(small, 1.0, np.sin(th))[:, None, None]
+    one_c = np.where(small, 0.0, 1.0 - np.cos(th))[:, None, None]
+    Rs = np.eye(3) + sin_t * K + one_c * (K @ K)
+    ts[:] = P[:, :3]
+    return Rs, ts
+
+
+def _skew_batch(w):
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 0] = -w[:, 2], w[:, 1], w[:, 2]
+    K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = -w[:, 0], -w[:, 1], w[:, 0]
+    return K
+
+
+def _reach_bounds(A, Rs, ts):
+    """Bounding box of f⁻¹(A) over every candidate (Rs (m, 3, 3), ts (m, 3)): where the field will be read."""
     c_lo, c_hi = A.min(0), A.max(0)
     corners = np.array([[x, y, z] for x in (c_lo[0], c_hi[0]) for y in (c_lo[1], c_hi[1])
                         for z in (c_lo[2], c_hi[2])])
-    for R, t in poses:
-        q = (corners - t) @ R
-        lo = np.minimum(lo, q.min(0))
-        hi = np.maximum(hi, q.max(0))
-    return lo, hi
+    q = np.einsum("cj,mjl->mcl", corners, Rs) - np.einsum("mj,mjl->ml", ts, Rs)[:, None, :]
+    return q.min((0, 1)), q.max((0, 1))
 
 
 def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
@@ -298,12 +340,10 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
 
     # --- candidate lattice and the field that covers every place A can reach under it
     cand, lat_shape = _lattice(center, half, lattice_counts)
-    poses = [pose(p) for p in cand]
-    lo, hi = _reach_bounds(A[fine_idx], poses)
+    Rs, ts = _poses_batch(mode, cand)
+    lo, hi = _reach_bounds(A[fine_idx], Rs, ts)
     pad = 0.02 * float(np.max(hi - lo))
     Ac, wac = A[coarse_idx], wa[coarse_idx]
-    Rs = np.stack([P[0] for P in poses])
-    ts = np.stack([P[1] for P in poses])
     if objective == "delta":
         # near_cells=1: the registration grid spans the whole search reach, so its spacing is coarse
         # and r_c = 2 spacings would gather hundreds of neighbours per fly (δ stays within 0.1 %).
