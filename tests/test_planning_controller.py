@@ -45,6 +45,9 @@ def test_stop_reasons():
     assert pl2.command((1.0, 1.0, 0.0)).reason == "target blocked"
     pl2.clear_target()
     assert pl2.command((1.0, 1.0, 0.0)).reason == "no target"
+    pl2.set_target(50.0, 2.0, 0.3)                   # beyond the fixed map extent
+    assert pl2.solve().status == "target outside grid"
+    assert pl2.command((1.0, 1.0, 0.0)).reason == "target outside grid"
 
 
 def test_limits_and_turning_on_the_spot():

@@ -17,8 +17,8 @@ API (what the planner service calls)::
     pl.passable, pl.clearance                          # inflated free space, distance to obstacles (m)
     pl.path_from(x, y)                                 # (K, 2) map-frame descent path to the target
 
-Stop reasons: 'target reached', 'no path', 'no target', 'target blocked', 'not solved', 'outside grid',
-'robot in obstacle'; while moving the reason is 'following field' or 'escaping obstacle'.
+Stop reasons: 'target reached', 'no path', 'no target', 'target blocked', 'target outside grid',
+'not solved', 'outside grid', 'robot in obstacle'; while moving the reason is 'following field' or 'escaping obstacle'.
 Bad input raises ``PlannerInputError`` (a ValueError).
 
 Modules: ``config`` (PlannerConfig, Command, SolveReport), ``occupancy`` (evidence grid), ``harmonic``

@@ -89,8 +89,8 @@ class PlannerConfig:
 @dataclass(frozen=True)
 class Command:
     """Differential-drive command.  ``stop`` True means v = omega = 0 and ``reason`` says why
-    ('target reached', 'no path', 'no target', 'target blocked', 'not solved', 'outside grid',
-    'robot in obstacle'); while moving ``reason`` is 'following field' or 'escaping obstacle'."""
+    ('target reached', 'no path', 'no target', 'target blocked', 'target outside grid', 'not solved',
+    'outside grid', 'robot in obstacle'); while moving ``reason`` is 'following field' or 'escaping obstacle'."""
 
     v: float
     omega: float
@@ -105,4 +105,4 @@ class SolveReport:
     max_rel_change: float
     elapsed_ms: float
     active_cells: int
-    status: str = field(default="ok")   # 'ok', 'no target', 'target blocked'
+    status: str = field(default="ok")   # 'ok', 'no target', 'target blocked', 'target outside grid'

@@ -116,9 +116,10 @@ class HarmonicPlanner:
         passable[1:-1, 1:-1] = self._passable
         target = np.zeros_like(passable)
         target[1:-1, 1:-1] = self._target_mask()
+        outside = not target.any()
         target &= passable
         if not target.any():
-            self._status = "target blocked"
+            self._status = "target outside grid" if outside else "target blocked"
             self._state[:] = hk.BLOCKED
             self._has_solution = False
             return
@@ -277,8 +278,8 @@ class HarmonicPlanner:
         dist_target = math.hypot(tx - x, ty - y)
         if dist_target <= tr:
             return Command(0.0, 0.0, True, "target reached")
-        if self._status == "target blocked":
-            return Command(0.0, 0.0, True, "target blocked")
+        if self._status in ("target blocked", "target outside grid"):
+            return Command(0.0, 0.0, True, self._status)
         if not self._has_solution:
             return Command(0.0, 0.0, True, "not solved")
         cell = self.cell_of(x, y)
