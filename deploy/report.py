@@ -24,9 +24,11 @@ def _last_command(recording: Path) -> tuple[m.VelocityCommand | None, int]:
             if rec.key.endswith("/planner/cmd_vel"):
                 count += 1
                 try:
-                    last = m.decode(rec.payload, m.VelocityCommand)
+                    cmd = m.decode(rec.payload, m.VelocityCommand)
                 except m.DecodeError:
-                    pass
+                    continue
+                if cmd.reason != "planner stopped":   # the planner's own shutdown is not an outcome
+                    last = cmd
     except RecordingError:
         pass
     return last, count

@@ -31,13 +31,19 @@ def build_parser():
     p.add_argument("--target-radius", type=float, default=0.4)
     p.add_argument("--extent", type=float, nargs=4, default=[-2.0, -6.0, 26.0, 6.0], metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
                    help="map-frame extent of the planning grid (m)")
-    p.add_argument("--resolution", type=float, default=0.05)
+    p.add_argument("--resolution", type=float, default=0.1, help="grid cell size (m)")
     p.add_argument("--robot-radius", type=float, default=0.22)
     p.add_argument("--v-max", type=float, default=0.4)
     p.add_argument("--omega-max", type=float, default=1.0)
     p.add_argument("--rate", type=float, default=10.0, help="command rate (Hz)")
     p.add_argument("--field-hz", type=float, default=1.0, help="field publication rate (Hz)")
-    p.add_argument("--solve-ms", type=float, default=30.0, help="relaxation budget per cycle")
+    p.add_argument("--solve-ms", type=float, default=40.0, help="relaxation budget per cycle")
+    p.add_argument("--sonar-range", type=float, default=0.8,
+                   help="sonar echoes nearer than this (m from base_link) are obstacles; farther ones are not "
+                        "used: an echo only says the nearest surface is somewhere on the beam's arc, and the "
+                        "arcs of oblique corridor walls would close the corridor")
+    p.add_argument("--keep-fraction", type=float, default=0.5,
+                   help="fittest fraction of each population used as obstacle evidence")
     return p
 
 
@@ -99,13 +105,16 @@ def body(node, args) -> int:
         if pop is not None and cal is not None:
             T_map_cam = _population_pose(pop, map_to_odom.get(), T_map_base, cal.T_base_camera)
             if T_map_cam is not None:
-                planner.update_flies(transform_points(T_map_cam, pop.positions.astype(np.float64)), pop.fitness,
-                                     pop.header.stamp_ns)
+                keep = fittest(pop.fitness, args.keep_fraction)
+                planner.update_flies(transform_points(T_map_cam, pop.positions[keep].astype(np.float64)),
+                                     pop.fitness[keep], pop.header.stamp_ns)
         scan = sonar.get()
         if scan is not None and scan.header.seq != last_sonar_seq and T_map_base is not None:
             last_sonar_seq = scan.header.seq
-            pts = transform_points(T_map_base, scan.positions.astype(np.float64))
-            planner.update_sonar(pts[:, :2], scan.header.stamp_ns)
+            near = np.linalg.norm(scan.positions[:, :2], axis=1) < args.sonar_range
+            if near.any():
+                pts = transform_points(T_map_base, scan.positions[near].astype(np.float64))
+                planner.update_sonar(pts[:, :2], scan.header.stamp_ns)
         report = planner.solve(max_ms=args.solve_ms)
         if T_map_base is None:
             cmd = m.VelocityCommand(stop=True, reason="no pose")
@@ -132,6 +141,15 @@ def body(node, args) -> int:
         node.sleep(max(0.0, period - (time.monotonic() - t_cycle)))
     cmd_pub.publish(m.VelocityCommand(stop=True, reason="planner stopped", header=m.header(0, time.time_ns(), m.BASE_LINK)))
     return 0
+
+
+def fittest(fitness: np.ndarray, fraction: float) -> np.ndarray:
+    """Indices of the fittest ``fraction`` of flies with positive fitness. Unconverged flies — fresh
+    immigrants, most of them drawn close to the camera since 1/z is uniform — must not become obstacles."""
+    if len(fitness) == 0:
+        return np.zeros(0, dtype=int)
+    threshold = max(0.0, float(np.quantile(fitness, 1.0 - fraction)))
+    return np.flatnonzero(fitness > threshold)
 
 
 def _population_pose(pop: m.FlyPopulation, map_to_odom, T_map_base, T_base_camera):
