@@ -7,12 +7,20 @@ Populations: the deep street scene of common.registration.scenes (0.5 m-baseline
 Figures (milliseconds are medians of repeated runs, numba compile time excluded by a warm-up):
   exact_delta_ms          pseudo_distance_exact: float64 numpy, chunked (the reference)
   exact_numba_delta_ms    the same sum with the parallel numba kernel (field_exact)
-  field_build_ms          PseudoDistanceField(B) build (FFT far field + cell list), default options
-  fast_delta_ms           field.delta(A) on the prebuilt field; fast_rel_error = |fast − exact| / exact
-  fast_lean_*             the same with near_cells=0.75 (faster, δ still accurate, gradient less so)
-  register_3dof_ms        register_planar(A, B) with the paper's δ (field build included)
-  register_3dof_stereo_ms register_planar(..., stereo=StereoModel(rig)): the deep-scene variant
+  field_build_ms          PseudoDistanceField(B, eps, bounds=A's box) build with the default options
+                          (CIC deposit, FFT far field, near-field cell list) — NOT included in:
+  fast_delta_ms           field.delta(A): δ evaluated at A's 5,000 (20,000) points on that PREBUILT
+                          field, i.e. one far-field interpolation + one near sum per point of A;
+                          fast_rel_error = |fast − exact| / exact, fast_grid_shape the grid
+  fast_lean_*             the same with the registration's field options (max_cells=120,000,
+                          near_cells=1): cheaper build, δ within ≈0.3 %, gradients less accurate
+  register_3dof_ms        register_planar(A, B) with the paper's δ (field build included; every call
+                          builds its own field over the search reach)
+  register_3dof_stereo_ms register_planar(..., stereo=StereoModel(rig)): the deep-scene variant the
+                          SLAM localiser uses (local objective, no FFT grid)
   register_6dof_ms        register_6dof(A, B) with the paper's δ
+  *_stages_ms             median wall time per stage of that registration (res.timings): setup,
+                          field (build), lattice, polish, refine, covariance
   *_err_m / *_err_deg     translation / rotation error of those registrations against the truth
   *_cpu_ms                process CPU time (all threads) of the same calls: on the shared machine the
                           wall clock also counts time spent waiting for a core
@@ -38,17 +46,24 @@ TRUTH = (0.3, 0.8, np.deg2rad(4.0))
 CPU = {}
 
 
+STAGES = {}
+
+
 def timed(fn, repeat, key=None):
-    """(last result, median wall ms); also records the median process CPU ms in CPU[key]."""
+    """(last result, median wall ms); also records the median process CPU ms in CPU[key] and, for
+    registrations, the median of each stage's wall ms in STAGES[key]."""
     out = None
-    ts, cs = [], []
+    ts, cs, stages = [], [], []
     for _ in range(repeat):
         t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
         ts.append(time.perf_counter() - t0)
         cs.append(time.process_time() - c0)
+        stages.append(getattr(out, "timings", {}))
     if key:
         CPU[key] = 1e3 * float(np.median(cs))
+        STAGES[key] = {k.removesuffix("_ms"): float(np.median([st.get(k, np.nan) for st in stages]))
+                       for k in stages[-1] if k != "total_ms"}
     return out, 1e3 * float(np.median(ts))
 
 
@@ -78,31 +93,36 @@ def measure(n, eps, repeat):
     field_exact(A[:10], B, eps)  # compile
     _, out["exact_numba_delta_ms"] = timed(lambda: field_exact(A, B, eps), 2)
     bounds = (A.min(0), A.max(0))
-    for key, opts in (("", {}), ("lean_", dict(near_cells=0.75))):
+    for key, opts in (("", {}), ("lean_", dict(max_cells=120_000, near_cells=1.0))):
         PseudoDistanceField(B[:100], eps, **opts).delta(A[:10])  # compile
-        field, build_ms = timed(lambda: PseudoDistanceField(B, eps, bounds=bounds, **opts), 3)
+        field, build_ms = timed(lambda: PseudoDistanceField(B, eps, bounds=bounds, **opts), 3, "b")
         fast, fast_ms = timed(lambda: field.delta(A), repeat, "d")
         out["fast_" + key + "delta_cpu_ms"] = CPU["d"]
         tag = "fast_" + key
         out[("field_build_ms" if not key else tag + "field_build_ms")] = build_ms
+        out[("field_build_cpu_ms" if not key else tag + "field_build_cpu_ms")] = CPU["b"]
         out[tag + "delta_ms"] = fast_ms
         out[tag + "rel_error"] = abs(fast - exact) / exact
         out[tag + "grid_shape"] = list(field.shape)
+        out[tag + "near_radius_m"] = field.rc
     print(f"[{n} flies] registering", file=sys.stderr)
     register_planar(A[:500], B[:500])  # compile
     register_planar(A[:500], B[:500], stereo=StereoModel(rig))
     register_6dof(A[:500], B[:500])
     res, out["register_3dof_ms"] = timed(lambda: register_planar(A, B, eps=eps), 3, "r")
     out["register_3dof_cpu_ms"] = CPU["r"]
+    out["register_3dof_stages_ms"] = STAGES["r"]
     out["register_3dof_err_m"], out["register_3dof_err_deg"] = errors(res, TRUTH)
     out["register_3dof_ok"] = res.ok
     res, out["register_3dof_stereo_ms"] = timed(
         lambda: register_planar(A, B, eps=eps, stereo=StereoModel(rig)), 3, "r")
     out["register_3dof_stereo_cpu_ms"] = CPU["r"]
+    out["register_3dof_stereo_stages_ms"] = STAGES["r"]
     out["register_3dof_stereo_err_m"], out["register_3dof_stereo_err_deg"] = errors(res, TRUTH)
     out["register_3dof_stereo_ok"] = res.ok
     res, out["register_6dof_ms"] = timed(lambda: register_6dof(A, B, eps=eps), 2, "r")
     out["register_6dof_cpu_ms"] = CPU["r"]
+    out["register_6dof_stages_ms"] = STAGES["r"]
     out["register_6dof_err_m"], out["register_6dof_err_deg"] = errors(res, TRUTH)
     out["register_6dof_ok"] = res.ok
     return out
@@ -121,6 +141,8 @@ def main():
         for k, v in res.items():
             if k in ("flies", "eps"):
                 continue
+            if isinstance(v, dict):
+                v = ", ".join(f"{a} {b:.3g}" for a, b in v.items())
             print(f"  {k:32s} {v:.4g}" if isinstance(v, float) else f"  {k:32s} {v}")
     if args.json:
         result = {k: v for k, v in small.items()}

@@ -12,13 +12,24 @@ The kernel is split, as in particle-particle/particle-mesh (P³M) solvers, into
 * a compact near part K − K_far (zero beyond r_c = near_cells·h), summed exactly over the neighbours
   of each query point found through a z-sorted x-y column list of B (column width r_c).
 
-Measured (bench/registration.py, deep street scene, n = p = 5,000, ε = 0.1 m, 2 shared cores under
-load 5–11 from other work, so wall ≈ 2–3× CPU): exact δ 1.08 s in numpy float64, 0.11 s with the
-parallel numba sum; this field: build 25–40 ms, δ at A's 5,000 points 11 ms CPU with the default
-near_cells=2 and 3.8 ms CPU with near_cells=0.75, |fast − exact| / exact = 0.04–0.05 % either way.
-The cost is the near sum: flies spread evenly over the image are packed near the camera (≈ 35
-neighbours within r_c = 0.5 m, ≈ 180 within 1.4 m), and the per-query column scan of the cell list
-dominates at small r_c.  A nested finer grid over the dense region is the next step to reach 1 ms.
+Measured (bench/registration.py and the sweeps behind this choice, deep street scene, n = p = 5,000,
+ε = 0.1 m, 2 shared cores under load): the exact δ takes ≈1.1 s in numpy float64 and ≈0.1 s with the
+parallel numba sum.  With the defaults (max_cells=360,000, so h ≈ 0.6 m; near_cells=2) the build
+(deposit, FFT convolution, cell list) takes ≈30 ms and δ at A's 5,000 points ≈1.0 ms CPU:
+≈0.15 ms for the tricubic far field, the rest the near sum; |fast − exact| / exact ≤ 0.1 % for ε in
+{0.01, 0.1, 1} and the per-point gradient is within ≈1.5 % (median) of exact.  The near radius sets
+the accuracy (as a ratio r_c/h): near_cells=1 gives δ within ≈0.3 % but gradients off by 10–20 %;
+1.5 gives δ within ≈0.15 % and gradients within 3–8 %.  A finer grid buys a smaller r_c, i.e. fewer
+neighbours per query, at the cost of the build: max_cells=120,000 (h ≈ 0.9 m) builds in ≈10 ms and
+evaluates in ≈1.4 ms; the registration, which rebuilds the field for every call, uses that with
+near_cells=1.
+
+Where the time went, and what did not help: the near sum is over the flies packed near the camera
+(≈70 neighbours within 0.9 m on average, ≈250 within 1.8 m).  Its loop is float32, vectorised by
+LLVM (this needs the numpy error model: numba's ZeroDivisionError check on `1/(ε + r)` blocked
+vectorisation, a 3× loss), and loops over the queries itself (a per-point call with a dozen array
+arguments cost more than the sum at small r_c).  Sorting the queries by cell gained ≈6 %, less than
+the sort costs; fixed 16-wide masked chunks instead of LLVM's vector loop were slower.
 
 Grid extent: the grid covers B and the `bounds` the caller will evaluate at (for registration, every
 place A's points can reach under the search window), padded by r_c.  A point outside the grid is
@@ -54,7 +65,7 @@ def _far_kernel_spectrum(fft_shape, h, eps, rc, deconvolve):
     spacing is rounded to a ladder of 2^(1/8) steps for that reason), which saves one of three FFTs.
     """
     kern = _kernels.far_kernel_grid(*fft_shape, h, eps, rc).astype(np.float32)
-    khat = scipy.fft.rfftn(kern, workers=-1)
+    khat = scipy.fft.rfftn(kern, workers=1)
     if deconvolve:
         khat /= _cic_window(fft_shape).astype(np.float32)
     khat.setflags(write=False)
@@ -68,16 +79,18 @@ def _convolve_zero_padded(rho, khat, fft_shape) -> np.ndarray:
     rfftn/irfftn axis by axis, skipping the zero padding: the forward transforms along z and y run
     only over rho's rows (¼ and ½ of the padded volume) and the inverse ones only over the rows that
     are kept.  Same result as irfftn(rfftn(rho, fft_shape) · khat)[:s0, :s1, :s2], ≈40 % less work.
+    One thread: on the shared machine two FFT threads measured slower in wall time (and ≈10 % more
+    CPU) than one.
     """
     s0, s1, s2 = rho.shape
     F0, F1, F2 = fft_shape
-    a = scipy.fft.rfft(rho, n=F2, axis=2, workers=-1)
-    a = scipy.fft.fft(a, n=F1, axis=1, workers=-1, overwrite_x=True)
-    a = scipy.fft.fft(a, n=F0, axis=0, workers=-1, overwrite_x=True)
+    a = scipy.fft.rfft(rho, n=F2, axis=2, workers=1)
+    a = scipy.fft.fft(a, n=F1, axis=1, workers=1, overwrite_x=True)
+    a = scipy.fft.fft(a, n=F0, axis=0, workers=1, overwrite_x=True)
     a *= khat
-    a = scipy.fft.ifft(a, axis=0, workers=-1, overwrite_x=True)[:s0]
-    a = scipy.fft.ifft(a, axis=1, workers=-1)[:, :s1]
-    out = scipy.fft.irfft(a, n=F2, axis=2, workers=-1)[:, :, :s2]
+    a = scipy.fft.ifft(a, axis=0, workers=1, overwrite_x=True)[:s0]
+    a = scipy.fft.ifft(a, axis=1, workers=1)[:, :s1]
+    out = scipy.fft.irfft(a, n=F2, axis=2, workers=1)[:, :, :s2]
     return np.ascontiguousarray(out, dtype=np.float64)
 
 
@@ -94,14 +107,16 @@ class PseudoDistanceField:
     spacing : grid spacing h in metres; default from `max_cells`.
     max_cells : grid-size budget when `spacing` is None (memory ≈ 4·8 bytes per cell, FFT ≈ 8× cells).
     near_cells : near-field radius r_c in grid spacings.  2 (default): δ within ≈0.1 %, its gradient
-        within ≈2 % of exact on the deep street scene; 0.75–1: δ still within 0.1 % and ≈2× faster,
-        but the gradient is off by up to 15 %.
+        within ≈2 % of exact on the deep street scene; 1: δ within ≈0.3 % and ≈1.5× faster, but the
+        gradient is off by 10–20 %.
     parallel_min : evaluate in parallel threads only for at least this many points (threads are a
         loss on small batches, and 10× slower when another process holds a core).
     deconvolve : divide the kernel spectrum by the CIC window (removes the deposit smoothing bias).
+    cells_per_radius : x-y column width of the near-field cell list is r_c / cells_per_radius (0.5
+        measured fastest: few columns per query, each one long contiguous run).
     """
 
-    def __init__(self, B, eps, weights_b=None, bounds=None, spacing=None, max_cells: int = 120_000,
+    def __init__(self, B, eps, weights_b=None, bounds=None, spacing=None, max_cells: int = 360_000,
                  near_cells: float = 2.0, deconvolve: bool = True, parallel_min: int = 50_000,
                  cells_per_radius: float = 0.5):
         self.B = as_population(B, "B")
@@ -188,8 +203,10 @@ class PseudoDistanceField:
     def delta(self, A, weights_a=None) -> float:
         """δ(A, B) (δ_w with weights), fast."""
         A = as_population(A, "A")
+        S = self._field(A, False, True)[0]
+        if weights_a is None:
+            return self.weight_sum / len(A) * float((1.0 / S).sum())
         wa = as_weights(weights_a, len(A), "weights_a")
-        S = self.field(A)
         return self.weight_sum / wa.sum() * float((wa / S).sum())
 
     def delta_and_grad(self, A, weights_a=None):

@@ -50,6 +50,7 @@ Malformed input (wrong shapes, NaN, a non-rigid prior) raises PopulationError.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field as dc_field
 
 import numpy as np
@@ -301,7 +302,6 @@ def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
 def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_counts, max_points,
               coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
               objective="delta", local_radius=0.5):
-    import time
     t0 = time.perf_counter()
     pose = _POSES[mode]
     k = 3 if mode in PLANES else 6
@@ -344,17 +344,19 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     lo, hi = _reach_bounds(A[fine_idx], Rs, ts)
     pad = 0.02 * float(np.max(hi - lo))
     Ac, wac = A[coarse_idx], wa[coarse_idx]
+    marks = [("setup", time.perf_counter())]
     if objective == "delta":
-        # near_cells=1: the registration grid spans the whole search reach, so its spacing is coarse
-        # and r_c = 2 spacings would gather hundreds of neighbours per fly (δ stays within 0.1 %).
-        opts = dict(dict(near_cells=1.0), **(field_options or {}))
+        # The field is rebuilt for every registration, so its build counts: a 120,000-cell grid over
+        # the whole search reach (≈10 ms) with near_cells=1 (r_c = 2 spacings would gather hundreds
+        # of neighbours per fly; δ stays within ≈0.3 %).
+        opts = dict(dict(near_cells=1.0, max_cells=120_000), **(field_options or {}))
         fld = PseudoDistanceField(B, eps, weights_b=wb, bounds=(lo - pad, hi + pad), **opts)
         fld_coarse, coarse_near = fld, False
     else:
         # local correlation: the coarse level is the same kernel with a 2× wider cut-off
         fld = LocalCorrelationField(B, eps, local_radius, weights_b=wb)
         fld_coarse, coarse_near = LocalCorrelationField(B, eps, 2 * local_radius, weights_b=wb), True
-    t_field = time.perf_counter() - t0
+    marks.append(("field", time.perf_counter()))
 
     # --- 1. coarse lattice on the smoothed objective (far field only / wide local kernel)
     sums = fld_coarse.batch_sums(Ac, wac, Rs, ts, near=coarse_near)
@@ -380,6 +382,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         x, v = _bfgs_box(fun, x0, lo_b, hi_b, maxiter, xtol=xtol)
         return center + x * scale, v
 
+    marks.append(("lattice", time.perf_counter()))
     # --- 2. polish the lattice minima on the smoothed δ
     smooth = _Objective(fld_coarse, Ac, wac, pose, near=coarse_near, kind=objective)
     polished = [polish(smooth, cand[s], 20, 1e-3) for s in seeds]
@@ -391,6 +394,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         if all(np.any(np.abs((p - q) / scale) > step) for q, _ in distinct):
             distinct.append((p, v))
 
+    marks.append(("polish", time.perf_counter()))
     # --- 3. refine the best two on the full δ
     full = _Objective(fld, A[fine_idx], wa[fine_idx], pose, near=True, kind=objective)
     # the runner-up is worth refining only if, smoothed, it is already nearly as deep as the best
@@ -405,6 +409,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     if len(refined) > 1 and np.any(np.abs((refined[1][0] - p_best) / scale) > step):
         ambiguity = float(np.clip(1.0 - (refined[1][1] - d_best) / max(contrast, 1e-300), 0, 1))
 
+    marks.append(("refine", time.perf_counter()))
     # --- curvature, covariance, checks
     L = max(radius, 1e-9)
     fd = np.array([min(0.25 * fld.rc, 0.02) if (mode == "6dof" and i < 3) or (mode in PLANES and i < 2)
@@ -430,7 +435,11 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     evals += 6
     stiff = max(eig[-1], float(np.linalg.eigvalsh(H3)[-1]))
     flatness = float(eig[0] / stiff) if stiff > 0 else float("nan")
-    timings = dict(field_ms=1e3 * t_field, total_ms=1e3 * (time.perf_counter() - t0))
+    marks.append(("covariance", time.perf_counter()))
+    # wall-clock milliseconds per stage: setup (validation, subsets, lattice poses), field (build),
+    # lattice, polish, refine, covariance (Hessian and checks), and the total
+    timings = {f"{name}_ms": 1e3 * (t - t_prev) for (name, t), (_, t_prev) in zip(marks, [("", t0)] + marks)}
+    timings["total_ms"] = 1e3 * (time.perf_counter() - t0)
     common = dict(T=T, params=p_best, delta=d_best, mode=mode, hessian=H, flatness=flatness,
                   ambiguity=ambiguity, evaluations=evals, timings=timings)
     at_edge = free & (np.abs(p_best - center) > 0.99 * half)
