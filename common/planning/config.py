@@ -39,6 +39,8 @@ class PlannerConfig:
     sonar_weight: float = 2.0
     # Relaxation.
     sor_omega: float = 1.9
+    sor_omega_near_walls: float = 1.5    # within near_wall_cells of an obstacle (see relaxation_factors)
+    near_wall_cells: float = 2.0
     tolerance: float = 1e-4              # largest relative change of phi per sweep counted as converged
     sweeps_per_check: int = 4
     coarse_block: int = 4                # block size of the correction applied after a map change; <=1: off
@@ -66,8 +68,9 @@ class PlannerConfig:
                                     f"got {self.size_m!r}")
         if len(self.origin) != 2 or not all(math.isfinite(o) for o in self.origin):
             raise PlannerInputError(f"PlannerConfig.origin must be a finite (x, y), got {self.origin!r}")
-        if not 0.0 < self.sor_omega < 2.0:
-            raise PlannerInputError(f"PlannerConfig.sor_omega must be in (0, 2), got {self.sor_omega}")
+        for name in ("sor_omega", "sor_omega_near_walls"):
+            if not 0.0 < getattr(self, name) < 2.0:
+                raise PlannerInputError(f"PlannerConfig.{name} must be in (0, 2), got {getattr(self, name)}")
         if self.evidence_cap < self.occupied_weight:
             raise PlannerInputError("PlannerConfig.evidence_cap must be >= occupied_weight")
         if self.fly_z_max <= self.fly_z_min:

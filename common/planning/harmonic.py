@@ -18,6 +18,7 @@ Grids are padded by one cell whose state is BLOCKED, so kernels need no bounds c
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numba import njit
 
@@ -103,24 +104,37 @@ def _relax(rf, wt, k, i, w, omega):
 @njit(cache=True)
 def scaled_ssor(r, wt, cells, omega, n_sweeps):
     """``n_sweeps`` symmetric SOR sweeps (forward then backward) of ``r_i = sum w_in r_n`` in place over
-    the ACTIVE cells ``cells`` (flat indices, ascending; ``wt`` from ``scaled_weights``).  Returns the
-    largest relative change of any cell in the last sweep."""
+    the ACTIVE cells ``cells`` (flat indices, ascending; ``wt`` from ``scaled_weights``) with per-cell
+    relaxation factors ``omega`` (see ``relaxation_factors``).  Returns the largest relative change of
+    any cell in the last sweep."""
     w = r.shape[1]
     rf = r.ravel()
     n = cells.size
     for _ in range(n_sweeps - 1):
         for k in range(n):
-            _relax(rf, wt, k, cells[k], w, omega)
+            _relax(rf, wt, k, cells[k], w, omega[k])
         for k in range(n - 1, -1, -1):
-            _relax(rf, wt, k, cells[k], w, omega)
+            _relax(rf, wt, k, cells[k], w, omega[k])
     worst = 0.0
     for k in range(n):
-        old, new = _relax(rf, wt, k, cells[k], w, omega)
+        old, new = _relax(rf, wt, k, cells[k], w, omega[k])
         worst = max(worst, abs(new - old) / new)
     for k in range(n - 1, -1, -1):
-        old, new = _relax(rf, wt, k, cells[k], w, omega)
+        old, new = _relax(rf, wt, k, cells[k], w, omega[k])
         worst = max(worst, abs(new - old) / new)
     return worst
+
+
+def relaxation_factors(state: np.ndarray, cells: np.ndarray, omega_open: float, omega_near: float,
+                       near_cells: float) -> np.ndarray:
+    """Per-cell SOR factor: ``omega_near`` within ``near_cells`` of a BLOCKED cell, ``omega_open`` elsewhere.
+
+    One factor tuned for open space (~1.9) makes SOR ring for hundreds of sweeps in narrow channels and
+    along walls, where the field falls steeply and the optimum is much lower; on the benchmark maps a
+    1.5 band two cells wide halves to thirds the sweeps to convergence (same fixed point)."""
+    free = np.ascontiguousarray((state != BLOCKED).astype(np.uint8))
+    d = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).ravel()[cells]
+    return np.where(d <= near_cells, omega_near, omega_open).astype(np.float64)
 
 
 @njit(cache=True)

@@ -140,6 +140,8 @@ class HarmonicPlanner:
         self._state = new_state
         self._cells = np.flatnonzero(active.ravel())
         self._weights = hk.scaled_weights(self._s, self._state, self._cells)
+        self._omega = hk.relaxation_factors(self._state, self._cells, self.cfg.sor_omega,
+                                            self.cfg.sor_omega_near_walls, self.cfg.near_wall_cells)
         if self.cfg.coarse_block > 1 and self._cells.size >= 8 * self.cfg.coarse_block ** 2:
             # One multiplicative block correction (aggregation.py): moves whole regions by the factor a
             # change of the map implies (SOR alone would need hundreds of sweeps to carry it across the
@@ -147,7 +149,7 @@ class HarmonicPlanner:
             agg, logq = block_factors(self._cells, self._weights, self._s, new_state, self.cfg.coarse_block)
             self._s.ravel()[self._cells] += logq[agg]
             self._weights = hk.scaled_weights(self._s, self._state, self._cells)
-            hk.scaled_ssor(self._r, self._weights, self._cells, 1.0, self.cfg.blend_sweeps)
+            hk.scaled_ssor(self._r, self._weights, self._cells, np.ones(self._cells.size), self.cfg.blend_sweeps)
         self._status = "ok"
         self._has_solution = True
 
@@ -179,7 +181,7 @@ class HarmonicPlanner:
         cap = cfg.max_sweeps if max_sweeps is None else int(max_sweeps)
         while sweeps < cap:
             n = min(cfg.sweeps_per_check, cap - sweeps)
-            change = hk.scaled_ssor(self._r, self._weights, self._cells, cfg.sor_omega, n)
+            change = hk.scaled_ssor(self._r, self._weights, self._cells, self._omega, n)
             sweeps += n
             if change < cfg.tolerance:
                 break
