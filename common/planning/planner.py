@@ -127,6 +127,8 @@ class HarmonicPlanner:
         new_state = np.full(passable.shape, hk.BLOCKED, dtype=np.int8)
         new_state[dist >= 0] = hk.ACTIVE
         new_state[target] = hk.TARGET
+        if self._has_solution and np.array_equal(new_state, self._state):
+            return      # evidence changed but no cell changed side: keep solution, weights and factors
         active = new_state == hk.ACTIVE
         # Warm start: keep phi = exp(s) r wherever the cell was already solved; fold r into s.
         known = active & (self._state == hk.ACTIVE) if self._has_solution else np.zeros_like(active)
