@@ -14,7 +14,11 @@ Figures (pooled over frames):
       wall (the true point at that pixel lies within 2 cm of a wall or box side, 5 cm–2 m up)
   *_in_beams                                     the same over flies inside a beam that had an echo
       (the only place the term can act), with the fraction of flies that are there
-Drift figures (odometry vs fused pose) need the localiser and are not measured here.
+On the 20 m corridor run (``corridor`` scenario, its whole scripted drive, ``--drift-fps`` frames/s,
+miscalibrated odometry as configured there), evolver and localiser run in lockstep (common.lockstep,
+as ``flyslam eval`` does):
+  drift_pct_odometry_only / drift_pct_fused      final position error in % of the path length, for wheel
+      odometry alone and for odometry fused with the localiser; ate_m_* the ATE RMSE of both
 
 Figures only, no pass/fail.  Progress goes to stderr; with --json the last stdout line is one JSON object.
 """
@@ -139,8 +143,35 @@ def run(args) -> dict:
         result[f"surface_fraction_in_beams_{arm}_sonar"] = p["beam_surface"] / max(p["beam"], 1)
         result[f"wall_error_m_in_beams_{arm}_sonar"] = med(p["beam_err"])
         result[f"evolve_s_per_generation_{arm}_sonar"] = timing[arm] / max(len(frames) * args.generations, 1)
-    result["drift"] = "not measured: needs the localiser"
+    if not args.skip_drift:
+        result.update(drift(args))
     return result
+
+
+def drift(args) -> dict:
+    """Odometry-only vs odometry + localiser on the 20 m corridor run (lockstep, deterministic)."""
+    import numpy as np
+
+    from common.lockstep import run_lockstep
+    from common.recording import RecordingReader
+    from common.sim.offline import cached_recording
+    from common.trajectory_metrics import evaluate
+
+    log(f"drift: rendering (or reusing) the corridor run at {args.drift_fps:g} frames/s ...")
+    rec = cached_recording("corridor", seed=args.seed, fps=args.drift_fps, encoding="jpeg", quality=90)
+    res = run_lockstep(RecordingReader(rec).messages(), generations_per_frame=30, seed=args.seed,
+                       progress=lambda n, status: n % 25 == 0 and log(f"drift: frame {n}: {status[:50]}"))
+    idx = [i for i, T in enumerate(res.odometry) if T is not None]
+    stamps = np.array(res.stamps, np.int64)[idx]
+    T0 = res.estimated[idx[0]] @ np.linalg.inv(res.odometry[idx[0]])
+    odom = [T0 @ res.odometry[i] for i in idx]
+    fused = [res.estimated[i] for i in idx]
+    m_odo = evaluate(stamps, odom, res.truth_stamps, res.truth)
+    m_fus = evaluate(stamps, fused, res.truth_stamps, res.truth)
+    return {"drift_pct_odometry_only": round(m_odo.drift_pct, 3), "drift_pct_fused": round(m_fus.drift_pct, 3),
+            "ate_m_odometry_only": round(m_odo.ate_rmse_m, 4), "ate_m_fused": round(m_fus.ate_rmse_m, 4),
+            "drift_path_length_m": round(m_fus.path_length_m, 2), "drift_frames": res.frames,
+            "drift_registered_fraction": round(res.registered_fraction, 3)}
 
 
 def main(argv=None) -> int:
@@ -158,6 +189,8 @@ def main(argv=None) -> int:
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--drift-fps", type=float, default=5.0, help="camera rate of the 20 m drift run")
+    p.add_argument("--skip-drift", action="store_true", help="only the sonar surface figures")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     result = run(args)

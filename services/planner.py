@@ -44,6 +44,9 @@ def build_parser():
                         "arcs of oblique corridor walls would close the corridor")
     p.add_argument("--keep-fraction", type=float, default=0.5,
                    help="fittest fraction of each population used as obstacle evidence")
+    p.add_argument("--min-fitness", type=float, default=0.05,
+                   help="flies below this fitness are never obstacles (converged flies score ~0.1-0.6, "
+                        "random ones ~0.01)")
     return p
 
 
@@ -87,6 +90,7 @@ def body(node, args) -> int:
         calib.set(node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0))
 
     current_target = None
+    converged_once = False   # the descent direction of a field that never converged can point anywhere
     last_sonar_seq = None
     last_field = 0.0
     last_cmd_reason = ""
@@ -97,6 +101,7 @@ def body(node, args) -> int:
         if tgt is not None and (tgt.x, tgt.y, tgt.radius_m) != current_target:
             planner.set_target(tgt.x, tgt.y, max(tgt.radius_m, args.resolution))
             current_target = (tgt.x, tgt.y, tgt.radius_m)
+            converged_once = False
             log.info("target (%.2f, %.2f) r=%.2f", *current_target)
         fused = pose.get()
         T_map_base = m.transform_of(fused) if fused is not None else None
@@ -105,7 +110,7 @@ def body(node, args) -> int:
         if pop is not None and cal is not None:
             T_map_cam = _population_pose(pop, map_to_odom.get(), T_map_base, cal.T_base_camera)
             if T_map_cam is not None:
-                keep = fittest(pop.fitness, args.keep_fraction)
+                keep = fittest(pop.fitness, args.keep_fraction, args.min_fitness)
                 planner.update_flies(transform_points(T_map_cam, pop.positions[keep].astype(np.float64)),
                                      pop.fitness[keep], pop.header.stamp_ns)
         scan = sonar.get()
@@ -115,9 +120,13 @@ def body(node, args) -> int:
             if near.any():
                 pts = transform_points(T_map_base, scan.positions[near].astype(np.float64))
                 planner.update_sonar(pts[:, :2], scan.header.stamp_ns)
-        report = planner.solve(max_ms=args.solve_ms)
+        # Until the field has converged once the robot waits, and the solver gets a larger budget.
+        report = planner.solve(max_ms=args.solve_ms if converged_once else 5 * args.solve_ms)
+        converged_once = converged_once or report.converged
         if T_map_base is None:
             cmd = m.VelocityCommand(stop=True, reason="no pose")
+        elif current_target is not None and not converged_once:
+            cmd = m.VelocityCommand(stop=True, reason="planning: field not converged yet")
         else:
             c = planner.command(planar_from_transform(T_map_base))
             cmd = m.VelocityCommand(linear_mps=float(c.v), angular_radps=float(c.omega), stop=bool(c.stop), reason=c.reason)
@@ -143,12 +152,13 @@ def body(node, args) -> int:
     return 0
 
 
-def fittest(fitness: np.ndarray, fraction: float) -> np.ndarray:
-    """Indices of the fittest ``fraction`` of flies with positive fitness. Unconverged flies — fresh
-    immigrants, most of them drawn close to the camera since 1/z is uniform — must not become obstacles."""
+def fittest(fitness: np.ndarray, fraction: float, min_fitness: float = 0.0) -> np.ndarray:
+    """Indices of the fittest ``fraction`` of flies above ``min_fitness``. Unconverged flies — a young
+    population, fresh immigrants, most of them drawn close to the camera since 1/z is uniform — must not
+    become obstacles: measured on a recorded run, they walled the robot in during its first seconds."""
     if len(fitness) == 0:
         return np.zeros(0, dtype=int)
-    threshold = max(0.0, float(np.quantile(fitness, 1.0 - fraction)))
+    threshold = max(min_fitness, float(np.quantile(fitness, 1.0 - fraction)))
     return np.flatnonzero(fitness > threshold)
 
 
