@@ -287,8 +287,8 @@ def near_accumulate(Q, use, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad,
 
     K − K_far is a compact bump (1/ε − K_far(0) at 0, zero with zero slope at r_c): the near-field
     correction of the fast δ, and on its own the kernel of the local correlation objective.
-    The cell list (`build_cells`) has x-y columns of width cell[0] and z cells of cell[2] (finer, so
-    a column's run hugs the sphere's chord).  Float32 inside (coordinates relative to the list's
+    The cell list (`build_cells`) has x-y columns of cell[0] × cell[1] and z cells of cell[2] (finer,
+    so a column's run hugs the sphere's chord).  Float32 inside (coordinates relative to the list's
     corner: ≈1e-6 relative error per term), accumulated per run into float64.  The query loop lives
     here rather than in a per-point function: the call (a dozen array arguments) cost more than the
     whole sum at small r_c.
@@ -301,9 +301,11 @@ def near_accumulate(Q, use, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad,
     e32 = np.float32(eps)
     r32 = np.float32(rc2)
     tiny = np.float32(1e-12)
-    cxy = cell[0]
+    cx = cell[0]
+    cy = cell[1]
     cz = cell[2]
-    ixy = 1.0 / cxy
+    ix_ = 1.0 / cx
+    iy_ = 1.0 / cy
     iz = 1.0 / cz
     n1 = dims[1]
     nz = dims[2]
@@ -317,10 +319,10 @@ def near_accumulate(Q, use, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad,
         py = Q[i, 1] - clo[1]
         pz = Q[i, 2] - clo[2]
         # int(v + 1) - 1 == floor(v) for v > -1; clamped below anyway
-        x0 = max(int((px - rc) * ixy + 1.0) - 1, 0)
-        x1 = min(int((px + rc) * ixy + 1.0) - 1, dims[0] - 1)
-        y0 = max(int((py - rc) * ixy + 1.0) - 1, 0)
-        y1 = min(int((py + rc) * ixy + 1.0) - 1, n1 - 1)
+        x0 = max(int((px - rc) * ix_ + 1.0) - 1, 0)
+        x1 = min(int((px + rc) * ix_ + 1.0) - 1, dims[0] - 1)
+        y0 = max(int((py - rc) * iy_ + 1.0) - 1, 0)
+        y1 = min(int((py + rc) * iy_ + 1.0) - 1, n1 - 1)
         if x0 > x1 or y0 > y1 or pz + rc < 0.0 or pz - rc > nz * cz:
             continue
         fx = np.float32(px)
@@ -331,9 +333,9 @@ def near_accumulate(Q, use, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad,
         dy = 0.0
         dz = 0.0
         for ax in range(x0, x1 + 1):
-            ddx = max(ax * cxy - px, px - (ax + 1) * cxy, 0.0)
+            ddx = max(ax * cx - px, px - (ax + 1) * cx, 0.0)
             for ay in range(y0, y1 + 1):
-                ddy = max(ay * cxy - py, py - (ay + 1) * cxy, 0.0)
+                ddy = max(ay * cy - py, py - (ay + 1) * cy, 0.0)
                 d2 = ddx * ddx + ddy * ddy
                 if d2 >= rc2:
                     continue
