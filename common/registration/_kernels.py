@@ -401,7 +401,7 @@ def _exact_at(qx, qy, qz, B, wb, eps, want_grad):
     return s, dx, dy, dz
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, fastmath=True, error_model="numpy")
 def _far_values(Q, grid, lo, h, B, wb, eps, S, inside):
     """Far (grid) part of S_B at the rows of Q into S; rows outside the grid get the exact sum and
     inside[i] = False.  Returns how many rows fell outside."""
