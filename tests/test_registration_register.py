@@ -147,3 +147,26 @@ def test_repeating_structure_is_reported_ambiguous():
     assert not res.ok
     assert "ambiguous" in res.reason
     assert res.ambiguity > 0.9
+
+
+def test_lattice_poses_match_the_single_pose_maps():
+    from common.registration.register import _POSES, _poses_batch
+    rng = np.random.default_rng(18)
+    for mode, k in (("optical", 3), ("body", 3), ("6dof", 6)):
+        P = rng.normal(size=(40, k)) * 0.4
+        if k == 6:
+            P[0, 3:] = 0.0          # the zero rotation takes so3_exp's small-angle branch
+        Rs, ts = _poses_batch(mode, P)
+        for i in range(len(P)):
+            R, t = _POSES[mode](P[i])
+            np.testing.assert_allclose(Rs[i], R, atol=1e-12)
+            np.testing.assert_allclose(ts[i], t, atol=1e-12)
+
+
+def test_timings_report_every_stage(street_flies):
+    rng = np.random.default_rng(19)
+    B = noisy_replica(street_flies, make_transform(rot_y(0.02), [0.2, 0, 0.3]), rng)
+    res = register_planar(street_flies, B)
+    stages = ("setup_ms", "field_ms", "lattice_ms", "polish_ms", "refine_ms", "covariance_ms")
+    assert all(res.timings[s] >= 0 for s in stages)
+    assert sum(res.timings[s] for s in stages) <= res.timings["total_ms"] + 1e-6
