@@ -45,6 +45,25 @@ def plot(path: Path, result, odom_in_map) -> None:
     cv2.imwrite(str(path), img)
 
 
+def parse_overrides(items: list[str]):
+    """LocaliserConfig with FIELD=VALUE overrides (values parsed as Python literals)."""
+    import ast
+    import dataclasses
+
+    from common.slam import LocaliserConfig
+    fields = {f.name for f in dataclasses.fields(LocaliserConfig)}
+    changes = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or name not in fields:
+            raise ValueError(f"--localiser expects FIELD=VALUE with FIELD one of {', '.join(sorted(fields))}; got {item!r}")
+        try:
+            changes[name] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            raise ValueError(f"--localiser {name}: {value!r} is not a number, tuple or boolean") from None
+    return LocaliserConfig(**changes)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="flyslam eval", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -54,6 +73,8 @@ def main(argv=None) -> int:
     p.add_argument("--population", type=int, default=5000)
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--localiser", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override a LocaliserConfig field (common/slam.py), e.g. --localiser keyframe_distance_m=1.5")
     args = p.parse_args(argv)
     try:
         reader = RecordingReader(args.recording)
@@ -61,6 +82,11 @@ def main(argv=None) -> int:
         print(f"flyslam eval: {e}", file=sys.stderr)
         return 2
     from common.fly import EvolverConfig
+    try:
+        localiser_config = parse_overrides(args.localiser)
+    except ValueError as e:
+        print(f"flyslam eval: {e}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -71,6 +97,7 @@ def main(argv=None) -> int:
 
     result = run_lockstep(reader.messages(), generations_per_frame=args.generations, seed=args.seed,
                           evolver_config=EvolverConfig(population=args.population, depth_max=30.0),
+                          localiser_config=localiser_config,
                           max_frames=args.max_frames, progress=progress)
     bar.done()
     if reader.error:
