@@ -15,21 +15,24 @@ The kernel is split, as in particle-particle/particle-mesh (P³M) solvers, into
 Measured (bench/registration.py and the sweeps behind this choice, deep street scene, n = p = 5,000,
 ε = 0.1 m, 2 shared cores under load): the exact δ takes ≈1.1 s in numpy float64 and ≈0.1 s with the
 parallel numba sum.  With the defaults (max_cells=360,000, so h ≈ 0.6 m; near_cells=2) the build
-(deposit, FFT convolution, cell list) takes ≈30 ms and δ at A's 5,000 points ≈1.0 ms CPU:
-≈0.15 ms for the tricubic far field, the rest the near sum; |fast − exact| / exact ≤ 0.1 % for ε in
+(deposit, FFT convolution, cell list) takes ≈35 ms and δ at A's 5,000 points ≈1.1 ms CPU:
+≈0.13 ms for the tricubic far field, the rest the near sum; |fast − exact| / exact ≤ 0.1 % for ε in
 {0.01, 0.1, 1} and the per-point gradient is within ≈1.5 % (median) of exact.  The near radius sets
 the accuracy (as a ratio r_c/h): near_cells=1 gives δ within ≈0.3 % but gradients off by 10–20 %;
 1.5 gives δ within ≈0.15 % and gradients within 3–8 %.  A finer grid buys a smaller r_c, i.e. fewer
 neighbours per query, at the cost of the build: max_cells=120,000 (h ≈ 0.9 m) builds in ≈10 ms and
-evaluates in ≈1.4 ms; the registration, which rebuilds the field for every call, uses that with
-near_cells=1.
+evaluates in ≈1.4 ms (≈1.0 ms with near_cells=1, δ within 0.3 %); the registration, which rebuilds
+the field for every call, uses the latter.  Below ≈1 ms the near sum is bound by its per-query part
+(column lookups and the scalar tails of the vectorised runs), not by r_c.
 
 Where the time went, and what did not help: the near sum is over the flies packed near the camera
 (≈70 neighbours within 0.9 m on average, ≈250 within 1.8 m).  Its loop is float32, vectorised by
 LLVM (this needs the numpy error model: numba's ZeroDivisionError check on `1/(ε + r)` blocked
 vectorisation, a 3× loss), and loops over the queries itself (a per-point call with a dozen array
 arguments cost more than the sum at small r_c).  Sorting the queries by cell gained ≈6 %, less than
-the sort costs; fixed 16-wide masked chunks instead of LLVM's vector loop were slower.
+the sort costs; fixed 8- or 16-wide masked blocks instead of LLVM's vector loop, gathering each
+query's candidates into one buffer, narrower or anisotropic x-y columns, and a C²-matched K_far
+(smoother on the grid, but no more accurate at small r_c) were all slower or no better.
 
 Grid extent: the grid covers B and the `bounds` the caller will evaluate at (for registration, every
 place A's points can reach under the search window), padded by r_c.  A point outside the grid is

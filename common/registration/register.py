@@ -36,11 +36,11 @@ registration was ≈ 5–15 instead of 3 (standard deviations ≈ 1.5–2× too 
 paper's δ, whose error there is mostly bias — inflate before fusing.
 
 Speed (bench/registration.py, 5,000 flies per population, CPU time on the shared 2-core machine;
-``res.timings`` holds the wall time per stage): ≈25 ms for a planar registration with the paper's δ
-(field build ≈10 ms — deposit, zero-padding-aware FFT, cell list —, lattice ≈2.5 ms, polish ≈1.5 ms,
-refine ≈4–5 ms, Hessian and covariance ≈4 ms), ≈30 ms with StereoModel (no FFT: lattice ≈8 ms on the
-wide local kernel, polish ≈5 ms, refine ≈10 ms), ≈60 ms for 6-DoF (3,375 lattice candidates).
-Before (same bench): 67, 100 and 196 ms.  What it took: vectorisable float32 near-field loops (see
+``res.timings`` holds the wall time per stage): ≈26 ms for a planar registration with the paper's δ
+(field build ≈11 ms — deposit, zero-padding-aware FFT, cell list —, lattice ≈2.5 ms, polish ≈1.5 ms,
+refine ≈5 ms, Hessian and covariance ≈5 ms), ≈33 ms with StereoModel (no FFT: lattice ≈9 ms on the
+wide local kernel, polish ≈6 ms, refine ≈13 ms), ≈62 ms for 6-DoF (3,375 lattice candidates).
+Before (same bench): 67, 99 and 196 ms.  What it took: vectorisable float32 near-field loops (see
 field.py), vectorised lattice poses, analytic planar pose Jacobians with a numba per-fly gradient,
 no input re-validation inside the optimiser, and a refine tolerance of 1e-3 of the window (1 mm on a
 1 m window; 1e-4 cost twice the evaluations for sub-millimetre changes).  Tried and dropped: a
