@@ -58,13 +58,13 @@ import json
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace as dc_replace
 
 import numpy as np
 
 from common.camera import StereoCalibration
 from common.fly import EvolverConfig, FlyEvolver, inlier_stats
-from common.geometry import invert, planar_pose, rot_y
+from common.geometry import invert, make_transform, planar_pose, rot_y
 from common.registration import PseudoDistanceField, StereoModel, register_planar
 from common.sim import OdometryReading, Simulator, load_scenario, scenario_path
 
@@ -214,6 +214,7 @@ class Variant:
     covis_passes: int = 0                # extra passes masking both populations to the co-seen region
     refine_window: tuple | None = None   # search half-widths of the extra passes (around the last estimate)
     odometry_prior: bool = True          # start from the wheel odometry's displacement (else identity)
+    symmetric: bool = False              # also register (B, A) and average f with the inverse of that
 
     def select(self, P, fit):
         """The flies this variant registers with, and their weights (None = unit)."""
@@ -233,6 +234,18 @@ class Variant:
     def register(self, A, fa, B, fb, calib, seed=0, prior=None):
         """register_planar on the selected flies; `prior` (the odometry's f) is used if odometry_prior."""
         prior = prior if self.odometry_prior else None
+        if self.symmetric:
+            r1 = self._register(A, fa, B, fb, calib, seed, prior)
+            r2 = self._register(B, fb, A, fa, calib, seed + 1, None if prior is None else invert(prior))
+            if not (np.all(np.isfinite(r1.params)) and np.all(np.isfinite(r2.params))):
+                return r1 if not np.all(np.isfinite(r2.params)) else r2
+            p = 0.5 * (r1.params + optical_params(invert(r2.T)))
+            T = make_transform(rot_y(p[2]), [p[0], 0.0, p[1]])
+            why = "; ".join(r.reason for r in (r1, r2) if not r.ok)
+            return dc_replace(r1, params=p, T=T, ok=r1.ok and r2.ok, reason=why)
+        return self._register(A, fa, B, fb, calib, seed, prior)
+
+    def _register(self, A, fa, B, fb, calib, seed, prior):
         kw = dict(plane="optical", eps=EPS, window=WINDOW, seed=seed, prior=prior)
         kw.update(self.options)
         if self.stereo is not None:
@@ -318,6 +331,10 @@ def candidate_variants() -> list[Variant]:
                 options=dict(every, eps=0.05)),
         Variant("local ε=0.05, all flies, co-visible ×2", covis_passes=1,
                 options=dict(every, eps=0.05, objective="local")),
+        Variant("local ε=0.05, all flies, co-visible ×2, symmetric", covis_passes=1, symmetric=True,
+                options=dict(every, eps=0.05, objective="local")),
+        Variant("δ ε=0.03, all flies, co-visible ×2, symmetric", covis_passes=1, symmetric=True,
+                options=dict(every, eps=0.03)),
         Variant("StereoModel()", stereo=dict()),
     ]
 
@@ -492,26 +509,40 @@ def figure_curves(path, xs, curves, title, xlabel):
 
 
 def figure_scatter(path, sets, truth, title, half):
-    """x–z scatter (mm) of estimates, and θ (°) against x on the right half; `sets` = [(label, est, ok)]."""
+    """Estimates as three panels side by side: x–z (mm) of every set within ±half of the truth, x–z of
+    the first set zoomed to its own spread, θ (°) against x.  `sets` = [(label, est, ok)], est in
+    (m, m, rad); ok=False estimates are open circles.  The first set is drawn last (on top)."""
     import cv2
-    t = truth * np.array([1e3, 1e3, np.rad2deg(1.0)])
-    xz = Plot((t[0] - half, t[0] + half), (t[1] - half, t[1] + half), title, "x (mm)", "z (mm)", equal=True)
-    half_deg = max(0.5, float(np.nanmax([np.nanmax(np.abs(np.rad2deg(e[:, 2]) - t[2])) for _, e, _ in sets])))
-    xt = Plot((t[0] - half, t[0] + half), (t[2] - 1.1 * half_deg, t[2] + 1.1 * half_deg),
-              "theta against x", "x (mm)", "theta (deg)")
-    for k, (label, est, ok) in enumerate(sets):
-        e = est * np.array([1e3, 1e3, np.rad2deg(1.0)])
-        for plot, col in ((xz, 1), (xt, 2)):
-            plot.points(e[ok, 0], e[ok, col], COLOURS[k], f"{label} (ok {ok.sum()})" if plot is xz else None)
-            plot.points(e[~ok, 0], e[~ok, col], COLOURS[k], None, radius=4, filled=False)
-    for plot, col in ((xz, 1), (xt, 2)):
-        plot.line([t[0] - half, t[0] + half], [t[col], t[col]], (0, 0, 0), None, 1)
-        plot.points([t[0]], [t[col]], (0, 0, 0), "truth" if plot is xz else None, radius=5)
-    xz.legend.append(("open circles: ok=False", (255, 255, 255)))
-    xz.save(path)
-    side = cv2.imread(path)
-    xt.save(path)
-    cv2.imwrite(path, np.concatenate([side, cv2.imread(path)], 1))
+    k_scale = np.array([1e3, 1e3, np.rad2deg(1.0)])
+    t = truth * k_scale
+    errs = [(label, est * k_scale, ok) for label, est, ok in sets]
+    first = errs[0][1]
+    fin = np.all(np.isfinite(first), 1)
+    zoom = float(max(1.0, 4.0 * np.max(np.std(first[fin, :2] - t[:2], 0)) if fin.sum() > 1 else half))
+    dth = max(0.2, float(np.nanmax([np.nanmax(np.abs(e[:, 2] - t[2])) for _, e, _ in errs])))
+    panels = [
+        (Plot((t[0] - half, t[0] + half), (t[1] - half, t[1] + half), title, "x (mm)", "z (mm)", equal=True),
+         1, errs),
+        (Plot((t[0] - zoom, t[0] + zoom), (t[1] - zoom, t[1] + zoom), f"zoom: {errs[0][0]}", "x (mm)",
+              "z (mm)", equal=True), 1, errs[:1]),
+        (Plot((t[0] - half, t[0] + half), (t[2] - 1.1 * dth, t[2] + 1.1 * dth), "theta against x", "x (mm)",
+              "theta (deg)"), 2, errs),
+    ]
+    images = []
+    for n, (plot, col, group) in enumerate(panels):
+        x0, x1 = plot.xlim
+        plot.line([x0, x1], [t[col], t[col]], (0, 0, 0), None, 1)
+        for k in reversed(range(len(group))):
+            label, e, ok = group[k]
+            plot.points(e[ok, 0], e[ok, col], COLOURS[k], f"{label} (ok {ok.sum()}/{len(ok)})" if n == 0 else None)
+            plot.points(e[~ok, 0], e[~ok, col], COLOURS[k], None, radius=3, filled=False)
+        plot.points([t[0]], [t[col]], (0, 0, 0), "truth" if n == 0 else None, radius=5)
+        if n == 0:
+            plot.legend.reverse()
+            plot.legend.append(("open circles: ok=False", (255, 255, 255)))
+        plot.save(path)
+        images.append(cv2.imread(path))
+    cv2.imwrite(path, np.concatenate(images, 1))
 
 
 # ------------------------------------------------------------------------------------------- main
