@@ -665,6 +665,13 @@ def run(args) -> dict:
                    [(k, *results[k]["vp"]) for k in order], truth,
                    f"pose {a} -> {b}: {len(vp_pairs)} registrations", half=250.0)
 
+    # --- raw estimates (m, m, rad) for later analysis
+    np.savez(os.path.join(args.out, "estimates.npz"), truth=truth, equivalent_pairs=np.array(eq_idx),
+             viewpoint_pairs=np.array(vp_idx),
+             **{f"{tag}_{exp}_{what}": results[name][exp[:2]][i]
+                for tag, name in (("headline", best.name), ("paper_delta", PAPER_VARIANT.name))
+                for exp in ("eq", "vp") for i, what in enumerate(("params", "ok"))})
+
     # --- JSON
     out = dict(headline_variant=best.name, flies=args.flies, generations=args.generations,
                equivalent_populations=len(eq_pops), equivalent_pairs=len(eq_pairs),
