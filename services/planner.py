@@ -11,6 +11,7 @@ publishes the field with its descent path on ``planner/field`` at ``--field-hz``
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import threading
 import time
@@ -19,7 +20,7 @@ import numpy as np
 
 from common import messages as m
 from common.geometry import planar_from_transform, transform_points
-from common.planning import HarmonicPlanner, PlannerConfig
+from common.planning import SensorView, HarmonicPlanner, PlannerConfig
 from services.base import run_service, service_parser
 
 log = logging.getLogger("flyslam.planner")
@@ -38,12 +39,21 @@ def build_parser():
     p.add_argument("--rate", type=float, default=10.0, help="command rate (Hz)")
     p.add_argument("--field-hz", type=float, default=1.0, help="field publication rate (Hz)")
     p.add_argument("--solve-ms", type=float, default=40.0, help="relaxation budget per cycle")
-    p.add_argument("--sonar-range", type=float, default=0.8,
+    p.add_argument("--sonar-range", type=float, default=1.3,
                    help="sonar echoes nearer than this (m from base_link) are obstacles; farther ones are not "
                         "used: an echo only says the nearest surface is somewhere on the beam's arc, and the "
-                        "arcs of oblique corridor walls would close the corridor")
+                        "arcs of oblique corridor walls would close the corridor. 1.3 m: the side beams see "
+                        "the walls of a 2 m corridor, textureless stretches included, which flies may miss")
     p.add_argument("--keep-fraction", type=float, default=0.5,
                    help="fittest fraction of each population used as obstacle evidence")
+    p.add_argument("--fly-range", type=float, default=5.0,
+                   help="flies farther than this (m, camera depth) are not obstacles, and the camera's view "
+                        "for forgetting evidence ends here: stereo depth error grows with the square of depth "
+                        "and on a recorded corridor run a quarter of the fit in-band flies beyond 5 m sat in "
+                        "the free corridor (under 1 % between 3 and 5 m)")
+    p.add_argument("--fly-near", type=float, default=0.3, help="nearest camera depth at which flies are evidence (m)")
+    p.add_argument("--unseen-half-life", type=float, default=60.0,
+                   help="half-life (s) of fly evidence outside the camera's view (inside: 2 s)")
     p.add_argument("--min-fitness", type=float, default=0.05,
                    help="flies below this fitness are never obstacles (converged flies score ~0.1-0.6, "
                         "random ones ~0.01)")
@@ -70,7 +80,8 @@ def body(node, args) -> int:
     x0, y0, x1, y1 = args.extent
     planner = HarmonicPlanner(PlannerConfig(resolution=args.resolution, size_m=(x1 - x0, y1 - y0), origin=(x0, y0),
                                             robot_radius=args.robot_radius, v_max=args.v_max,
-                                            omega_max=args.omega_max))
+                                            omega_max=args.omega_max,
+                                            unseen_half_life_s=args.unseen_half_life))
     pose, map_to_odom, target, sonar, calib = Latest(), Latest(), Latest(), Latest(), Latest()
     node.subscribe("fusion/pose", m.PoseEstimate, pose.set)
     node.subscribe("slam/map_to_odom", m.TransformMsg, map_to_odom.set)
@@ -111,15 +122,21 @@ def body(node, args) -> int:
             T_map_cam = _population_pose(pop, map_to_odom.get(), T_map_base, cal.T_base_camera)
             if T_map_cam is not None:
                 keep = fittest(pop.fitness, args.keep_fraction, args.min_fitness)
+                depth = pop.positions[keep, 2]
+                keep = keep[(depth >= args.fly_near) & (depth <= args.fly_range)]
                 planner.update_flies(transform_points(T_map_cam, pop.positions[keep].astype(np.float64)),
-                                     pop.fitness[keep], pop.header.stamp_ns)
+                                     pop.fitness[keep], pop.header.stamp_ns,
+                                     view=camera_view(T_map_cam, cal, args.fly_near, args.fly_range))
         scan = sonar.get()
         if scan is not None and scan.header.seq != last_sonar_seq and T_map_base is not None:
             last_sonar_seq = scan.header.seq
             near = np.linalg.norm(scan.positions[:, :2], axis=1) < args.sonar_range
-            if near.any():
-                pts = transform_points(T_map_base, scan.positions[near].astype(np.float64))
-                planner.update_sonar(pts[:, :2], scan.header.stamp_ns)
+            pts = transform_points(T_map_base, scan.positions[near].astype(np.float64))
+            # Every scan, echoes or not: inside the disc it observed, old sonar evidence it did not renew
+            # is forgotten; outside, it stays (an echo from a textureless wall the flies never see).
+            planner.update_sonar(pts[:, :2], scan.header.stamp_ns,
+                                 view=SensorView(float(T_map_base[0, 3]), float(T_map_base[1, 3]), 0.0, math.pi,
+                                                 args.sonar_range))
         # Until the field has converged once the robot waits, and the solver gets a larger budget.
         report = planner.solve(max_ms=args.solve_ms if converged_once else 5 * args.solve_ms)
         converged_once = converged_once or report.converged
@@ -160,6 +177,16 @@ def fittest(fitness: np.ndarray, fraction: float, min_fitness: float = 0.0) -> n
         return np.zeros(0, dtype=int)
     threshold = max(min_fitness, float(np.quantile(fitness, 1.0 - fraction)))
     return np.flatnonzero(fitness > threshold)
+
+
+def camera_view(T_map_cam: np.ndarray, calib, near_m: float, range_m: float) -> SensorView:
+    """The ground wedge the left camera saw (map frame): its position, the heading of its optical axis
+    (z), half its horizontal field of view, and the trusted depth band."""
+    fx, cx = float(calib.left.K[0, 0]), float(calib.left.K[0, 2])
+    half_fov = math.atan2(max(cx, calib.width - cx), fx)
+    return SensorView(x=float(T_map_cam[0, 3]), y=float(T_map_cam[1, 3]),
+                      yaw=math.atan2(float(T_map_cam[1, 2]), float(T_map_cam[0, 2])),
+                      half_fov_rad=half_fov, range_m=float(range_m), near_m=float(near_m))
 
 
 def _population_pose(pop: m.FlyPopulation, map_to_odom, T_map_base, T_base_camera):

@@ -7,8 +7,10 @@ API (what the planner service calls)::
     pl = HarmonicPlanner(PlannerConfig(resolution=0.05, size_m=(20.0, 20.0), origin=(-10.0, -10.0),
                                        robot_radius=0.2))
     pl.set_target(x, y, radius)                        # map frame; clear_target() to drop it
-    pl.update_flies(points_map, fitness, stamp_ns)     # (N, 3) map frame, (N,) fitness, int ns
-    pl.update_sonar(points_xy, stamp_ns)               # (M, 2) map-frame echo points
+    pl.update_flies(points_map, fitness, stamp_ns, view=None)  # (N, 3) map frame, (N,) fitness, int ns;
+                                                       # view=SensorView(x, y, yaw, half_fov_rad, range_m, near_m):
+                                                       # evidence is forgotten fast only inside the camera's view
+    pl.update_sonar(points_xy, stamp_ns, view=None)    # (M, 2) map-frame echo points (M may be 0)
     rep = pl.solve(max_ms=None, max_sweeps=None)       # SolveReport(sweeps, converged, ..., status)
     cmd = pl.command((x, y, yaw))                      # Command(v, omega, stop, reason)
     pl.field          # (H, W) -log(1 - u): 0 on the target, +inf on obstacles / unreachable cells
@@ -25,7 +27,7 @@ Modules: ``config`` (PlannerConfig, Command, SolveReport), ``occupancy`` (eviden
 (numba kernels), ``aggregation`` (block correction), ``controller`` (heading -> (v, omega)),
 ``planner`` (HarmonicPlanner), ``closed_loop`` (kinematic harness), ``scenarios`` (seeded worlds).
 """
-from .config import Command, PlannerConfig, PlannerInputError, SolveReport
+from .config import SensorView, Command, PlannerConfig, PlannerInputError, SolveReport
 from .planner import HarmonicPlanner
 
-__all__ = ["Command", "HarmonicPlanner", "PlannerConfig", "PlannerInputError", "SolveReport"]
+__all__ = ["SensorView", "Command", "HarmonicPlanner", "PlannerConfig", "PlannerInputError", "SolveReport"]

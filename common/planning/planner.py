@@ -5,8 +5,8 @@ Usage (the planner service)::
 
     pl = HarmonicPlanner(PlannerConfig(resolution=0.05, size_m=(20, 20), origin=(-10, -10)))
     pl.set_target(x, y, radius)
-    pl.update_flies(points_map, fitness, stamp_ns)   # (N, 3) map frame, (N,)
-    pl.update_sonar(points_xy, stamp_ns)              # (M, 2) map frame
+    pl.update_flies(points_map, fitness, stamp_ns, view=None)  # (N, 3) map frame, (N,), SensorView
+    pl.update_sonar(points_xy, stamp_ns, view=None)   # (M, 2) map frame
     pl.solve(max_ms=20)                               # warm-started relaxation, returns a SolveReport
     cmd = pl.command((x, y, yaw))                     # Command(v, omega, stop, reason)
     pl.field, pl.grid_origin, pl.resolution, pl.path_from(x, y)
@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from . import harmonic as hk
-from .config import Command, PlannerConfig, PlannerInputError, SolveReport
+from .config import SensorView, Command, PlannerConfig, PlannerInputError, SolveReport
 from .aggregation import block_factors
 from .controller import heading_command
 from .occupancy import EvidenceGrid
@@ -58,13 +58,16 @@ class HarmonicPlanner:
         self._target = None
         self._target_version += 1
 
-    def update_flies(self, points_map, fitness, stamp_ns: int) -> int:
-        """Fold a fly population ((N, 3) map-frame points, (N,) fitness) into the occupancy evidence."""
-        return self.grid.add_flies(points_map, fitness, stamp_ns)
+    def update_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None) -> int:
+        """Fold a fly population ((N, 3) map-frame points, (N,) fitness) into the occupancy evidence.
+        ``view`` (where the camera looked, map frame): old evidence is forgotten quickly only inside it,
+        slowly elsewhere (see occupancy.py); without it, everywhere at the same rate."""
+        return self.grid.add_flies(points_map, fitness, stamp_ns, view)
 
-    def update_sonar(self, points_xy, stamp_ns: int) -> None:
-        """Fold sonar echoes ((M, 2) map-frame x, y) into the occupancy evidence."""
-        self.grid.add_sonar(points_xy, stamp_ns)
+    def update_sonar(self, points_xy, stamp_ns: int, view: SensorView | None = None) -> None:
+        """Fold sonar echoes ((M, 2) map-frame x, y; M may be 0) into the occupancy evidence.  ``view``: the
+        region the scan observed (e.g. SensorView(x, y, 0, pi, range) around the robot)."""
+        self.grid.add_sonar(points_xy, stamp_ns, view)
 
     # -- grid helpers --------------------------------------------------------------------------------
     @property
