@@ -6,7 +6,8 @@ Publishes ``stereo/frame`` (rectified pair), ``stereo/calibration`` (latched, re
 (start time + simulated time), so latencies measured downstream are real.
 
 Runs in real time (``--rate`` scales it); in closed loop (``--closed-loop``) it drives by the newest
-``planner/cmd_vel`` and stops the robot when commands stop arriving for ``--cmd-timeout`` seconds.
+``planner/cmd_vel``, stops the robot when commands stop arriving for ``--cmd-timeout`` seconds, and with
+``--end-on-target S`` exits 0 once the planner has said 'target reached' for S seconds.
 Writes the ground-truth trajectory as TUM text with ``--truth-tum``.
 """
 from __future__ import annotations
@@ -41,6 +42,9 @@ def build_parser():
     p.add_argument("--encoding", default="rgb8", choices=["rgb8", "jpeg", "png"], help="stereo frame encoding")
     p.add_argument("--closed-loop", action="store_true", help="drive by planner/cmd_vel instead of the scripted path")
     p.add_argument("--cmd-timeout", type=float, default=1.0, help="closed loop: stop when commands are this old")
+    p.add_argument("--end-on-target", type=float, default=None, metavar="S",
+                   help="closed loop: end (exit 0) once the planner has said 'target reached' for S simulated "
+                        "seconds (with ends_run in a launch file, this ends the run)")
     p.add_argument("--depth", action="store_true", help="also publish the ground-truth depth map")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds to run (default: until the path ends)")
     p.add_argument("--truth-tum", default=None, help="write the ground-truth trajectory (TUM) here on exit")
@@ -65,6 +69,12 @@ class CommandInbox:
             return
         with self._lock:
             self.command, self.received_at = cmd, time.monotonic()
+
+    def reason(self, timeout: float) -> str | None:
+        """The newest command's reason, or None if there is none or it is older than ``timeout``."""
+        with self._lock:
+            cmd, age = self.command, time.monotonic() - self.received_at
+        return None if cmd is None or age > timeout else cmd.reason
 
     def get(self, timeout: float) -> tuple[float, float]:
         with self._lock:
@@ -103,6 +113,7 @@ def body(node, args) -> int:
             target_pub.publish(target)
 
     step = 0.01
+    reached_since_ns = None     # simulated time since which the planner has said 'target reached'
     while not node.stopping:
         if args.duration is not None and sim.time_ns * 1e-9 >= args.duration:
             break
@@ -114,6 +125,14 @@ def body(node, args) -> int:
             last_calib = time.monotonic()
         if args.closed_loop:
             sim.set_command(*inbox.get(args.cmd_timeout))
+            if args.end_on_target is not None:
+                if inbox.reason(args.cmd_timeout) == "target reached":
+                    reached_since_ns = sim.time_ns if reached_since_ns is None else reached_since_ns
+                    if (sim.time_ns - reached_since_ns) * 1e-9 >= args.end_on_target:
+                        log.info("target reached at %.1f s; ending", reached_since_ns * 1e-9)
+                        break
+                else:
+                    reached_since_ns = None
         events = sim.advance(step)
         # Real-time pacing: publish each batch when the wall clock reaches the simulated time.
         if args.rate > 0:
