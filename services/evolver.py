@@ -108,6 +108,11 @@ def body(node, args) -> int:
             with inputs.lock:
                 cmsg = inputs.calibration_msg
             if cmsg is None:
+                # A source publishes its calibration rarely (a replay: once); ask its latched publisher.
+                cmsg = node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=0.5)
+                if cmsg is not None:
+                    inputs.on_calibration(cmsg)
+            if cmsg is None:
                 node.counters.add("frames_without_calibration")
                 continue
             if cmsg is not used_calib_msg:

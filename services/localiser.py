@@ -52,8 +52,10 @@ def body(node, args) -> int:
             odom.add(msg.header.stamp_ns, m.transform_of(msg))
 
     node.subscribe("fusion/odom", m.PoseEstimate, on_odom)
-    calib_msg = [node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0)]
+    calib_msg = [None]
     node.subscribe("stereo/calibration", m.StereoCalibrationMsg, lambda msg: calib_msg.__setitem__(0, msg))
+    calib_msg[0] = calib_msg[0] or node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0)
+    last_calib_query = time.monotonic()
     populations = node.subscribe_latest("flies/population", m.FlyPopulation)
     pose_pub = node.publisher("slam/pose")
     tf_pub = node.publisher("slam/map_to_odom", latched=True)
@@ -79,6 +81,10 @@ def body(node, args) -> int:
             continue        # a republished population of a frame already localised
         last_seq = pop.source_seq
         if state["loc"] is None:
+            if calib_msg[0] is None and time.monotonic() - last_calib_query > 1.0:
+                # A source publishes its calibration rarely (a replay: once); ask its latched publisher.
+                calib_msg[0] = node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=0.5)
+                last_calib_query = time.monotonic()
             if calib_msg[0] is None:
                 node.counters.add("populations_without_calibration")
                 continue
