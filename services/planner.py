@@ -2,7 +2,10 @@
 
 Folds the newest ``flies/population`` (moved into the map frame with the population's odometry pose and
 the newest map→odom, or with the fused pose) and sonar echoes (``fusion/sonar_points``) into the
-planner's evidence grid, keeps the harmonic field up to date (warm-started), and publishes
+planner's evidence grid — flies only between --fly-near and --fly-range camera depth, each population with
+the camera's view and each scan with the sonar's disc, so evidence is forgotten quickly only where the
+sensors look again and obstacles that left their view stay — keeps the harmonic field up to date
+(warm-started), and publishes
 ``planner/cmd_vel`` at ``--rate`` from the best current pose ``fusion/pose``. The target comes from
 ``planner/target`` (latched; set by the launch file, the simulator's scenario or a user) or ``--target
 X Y``. It stops with a stated reason ('target reached', 'no path', 'no target', ...) in the command, and
