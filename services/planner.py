@@ -43,6 +43,11 @@ def build_parser():
                    help="free space (m) beyond the inflated obstacles under which the robot slows down; at the "
                         "library's 0.5 m a third of the commands of a recorded corridor run crawled straight "
                         "ahead at under half speed, the mapped walls of a 2 m corridor being that close")
+    p.add_argument("--look-omega", type=float, default=0.3,
+                   help="turn rate (rad/s) on 'no path': the robot turns on the spot so the camera sees the "
+                        "blocked region again and evidence nobody renews there fades (0: stop instead). On a "
+                        "recorded run a phantom wall across the corridor, seen once and then out of view, kept "
+                        "a stopped robot at 'no path' for 100 s")
     p.add_argument("--rate", type=float, default=10.0, help="command rate (Hz)")
     p.add_argument("--field-hz", type=float, default=1.0, help="field publication rate (Hz)")
     p.add_argument("--solve-ms", type=float, default=40.0, help="relaxation budget per cycle")
@@ -153,8 +158,7 @@ def body(node, args) -> int:
         elif current_target is not None and not converged_once:
             cmd = m.VelocityCommand(stop=True, reason="planning: field not converged yet")
         else:
-            c = planner.command(planar_from_transform(T_map_base))
-            cmd = m.VelocityCommand(linear_mps=float(c.v), angular_radps=float(c.omega), stop=bool(c.stop), reason=c.reason)
+            cmd = velocity_command(planner.command(planar_from_transform(T_map_base)), args.look_omega)
         cmd.header = m.header(0, time.time_ns(), m.BASE_LINK)
         cmd_pub.publish(cmd)
         if cmd.reason != last_cmd_reason:
@@ -175,6 +179,17 @@ def body(node, args) -> int:
         node.sleep(max(0.0, period - (time.monotonic() - t_cycle)))
     cmd_pub.publish(m.VelocityCommand(stop=True, reason="planner stopped", header=m.header(0, time.time_ns(), m.BASE_LINK)))
     return 0
+
+
+def velocity_command(c, look_omega: float) -> m.VelocityCommand:
+    """The bus command for a planner Command. 'no path' becomes a slow turn on the spot (when
+    ``look_omega`` > 0): with evidence remembered outside the sensors' view, a phantom obstacle that closed
+    the way and then left the view would otherwise keep a stopped robot blocked indefinitely; turning
+    brings it back into view, where it fades unless flies keep landing on it."""
+    if c.stop and c.reason == "no path" and look_omega > 0:
+        return m.VelocityCommand(linear_mps=0.0, angular_radps=float(look_omega), stop=False,
+                                 reason="no path: turning to look again")
+    return m.VelocityCommand(linear_mps=float(c.v), angular_radps=float(c.omega), stop=bool(c.stop), reason=c.reason)
 
 
 def fittest(fitness: np.ndarray, fraction: float, min_fitness: float = 0.0) -> np.ndarray:

@@ -98,3 +98,20 @@ def test_sensor_view_rejects_bad_values():
         pl.update_flies(wall(1, 2, 0.5), np.ones(200), 0, view=(0.0, 0.0, 0.0))
     with pytest.raises(PlannerInputError, match="unseen_half_life_s"):
         PlannerConfig(unseen_half_life_s=0.0)
+
+
+def test_the_service_turns_to_look_again_when_there_is_no_path():
+    from services.planner import velocity_command
+    from common.planning import Command
+    pl = corridor_planner()
+    across = np.column_stack([np.full(200, 3.0), np.linspace(-3.0, 3.0, 200), np.full(200, 0.5)])
+    for k in range(10):                     # a wall across the whole map, seen once
+        pl.update_flies(across, np.ones(200), k * 100_000_000, view=forward_view(0.0))
+    pl.solve()
+    c = pl.command((1.0, 0.0, 0.0))
+    assert c.reason == "no path"
+    look = velocity_command(c, 0.3)
+    assert not look.stop and look.linear_mps == 0.0 and look.angular_radps == 0.3
+    assert velocity_command(c, 0.0).stop
+    moving = velocity_command(Command(0.2, -0.1, False, "following field"), 0.3)
+    assert (moving.linear_mps, moving.angular_radps, moving.reason) == (0.2, -0.1, "following field")
