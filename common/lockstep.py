@@ -82,7 +82,7 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             last_T_odom_cam = T_odom_cam
             evolver.set_images(left, right)
             evolver.step(generations_per_frame)
-            est = localiser.update(stamp, evolver.positions, evolver.fitness, T_odom_base)
+            est = localiser.update(stamp, evolver.positions, evolver.fitness, T_odom_base, evolver.generation)
             res.stamps.append(stamp)
             res.estimated.append(est.T_map_base)
             res.odometry.append(T_odom_base)

@@ -14,13 +14,19 @@ import numpy as np
 from common import messages as m
 from common.recording import RecordingError, RecordingReader
 from common.trajectory import TrajectoryFormatError, read_tum
-from common.trajectory_metrics import TrajectoryMismatch, evaluate
+from common.trajectory_metrics import TrajectoryMismatch, associate, evaluate
 
 
-def _last_command(recording: Path) -> tuple[m.VelocityCommand | None, int]:
-    last, count = None, 0
+def _last_command(recording: Path) -> tuple[m.VelocityCommand | None, int, m.Target | None]:
+    """The planner's last command (its own shutdown excluded), how many there were, and the target."""
+    last, count, target = None, 0, None
     try:
         for rec in RecordingReader(recording).messages():
+            if rec.key.endswith("/planner/target"):
+                try:
+                    target = m.decode(rec.payload, m.Target)
+                except m.DecodeError:
+                    pass
             if rec.key.endswith("/planner/cmd_vel"):
                 count += 1
                 try:
@@ -31,7 +37,7 @@ def _last_command(recording: Path) -> tuple[m.VelocityCommand | None, int]:
                     last = cmd
     except RecordingError:
         pass
-    return last, count
+    return last, count, target
 
 
 def pipeline_summary(out: Path) -> dict:
@@ -56,14 +62,23 @@ def pipeline_summary(out: Path) -> dict:
             summary["ate_rmse_m"] = round(metrics.ate_rmse_m, 3)
             summary["path_length_m"] = round(metrics.path_length_m, 2)
             summary["ate_pct_of_path"] = round(metrics.ate_pct_of_path, 2)
+            # ATE aligns the trajectories first; a navigating robot lives in the unaligned map frame, so
+            # also report where the robot believed it was at the end versus where it really was.
+            i, j = associate(es, gs, 60_000_000)
+            if len(i):
+                summary["final_position_error_m"] = round(float(np.linalg.norm(ep[i[-1]][:2, 3] - gp[j[-1]][:2, 3])), 3)
+                summary["final_true_xy"] = [round(float(v), 2) for v in gp[-1][:2, 3]]
         except (TrajectoryFormatError, TrajectoryMismatch, ValueError) as e:
             summary["ate_error"] = str(e)
     else:
         summary["ate_error"] = "no estimated and ground-truth trajectories"
-    cmd, n_cmd = _last_command(out / "recording.mcap")
+    cmd, n_cmd, target = _last_command(out / "recording.mcap")
     summary["commands"] = n_cmd
     if cmd is not None:
         summary["target"] = "reached" if cmd.reason == "target reached" else f"not reached: last command '{cmd.reason}'"
+    if target is not None and "final_true_xy" in summary:
+        x, y = summary["final_true_xy"]
+        summary["true_distance_to_target_m"] = round(float(np.hypot(target.x - x, target.y - y)), 2)
     files = {"rerun": out / "run.rrd", "recording": out / "recording.mcap", "estimated": est_path,
              "truth": gt_path, "logs": out / "logs"}
     summary["files"] = {k: str(v) for k, v in files.items() if v.exists()}
@@ -82,7 +97,12 @@ def format_pipeline_summary(s: dict) -> str:
                      f"({s['ate_pct_of_path']} % of the path)")
     else:
         lines.append(f"  ATE vs ground truth  - ({s.get('ate_error')})")
-    lines.append(f"  target               {s.get('target', 'unknown (no planner command recorded)')}")
+    if "final_position_error_m" in s:
+        lines.append(f"  final pose error     {s['final_position_error_m']} m (estimate vs truth at the end, unaligned)")
+    target_line = s.get('target', 'unknown (no planner command recorded)')
+    if "true_distance_to_target_m" in s:
+        target_line += f" (true distance to the target at the end: {s['true_distance_to_target_m']} m)"
+    lines.append(f"  target               {target_line}")
     if s.get("restarts"):
         lines.append(f"  restarts             {s['restarts']}")
     lines.append("  files:")

@@ -100,7 +100,7 @@ def body(node, args) -> int:
                 T_odom_base = odom.at(stamp)
         try:
             with lock:
-                est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base)
+                est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation)
         except LocaliserError as e:
             node.counters.add("bad_populations")
             log.warning("population %d rejected: %s", pop.source_seq, e)

@@ -31,7 +31,7 @@ def test_localiser_service_publishes_poses_serves_its_map_and_writes_tum(tmp_pat
             for k in range(8):
                 T_odom_base = planar_pose(0.6 * k, 0.0, 0.0)
                 cam = seen_from(T_odom_base, world).astype(np.float32)
-                pops.publish(m.FlyPopulation(positions=cam, fitness=np.ones(len(cam), np.float32), generation=10,
+                pops.publish(m.FlyPopulation(positions=cam, fitness=np.ones(len(cam), np.float32), generation=500,
                                              source_seq=k + 1, T_odom_camera=T_odom_base @ T_BASE_CAMERA,
                                              header=m.header(0, (k + 1) * 10**8, m.CAMERA_LEFT_OPTICAL)))
                 assert wait_until(lambda: len(poses) >= k + 1, 30), (tmp_path / "loc.log").read_text()[-2000:]

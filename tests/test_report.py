@@ -1,0 +1,41 @@
+"""The summary after `flyslam run`: measured figures from what the run left, never guesses."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from common import messages as m
+from common.geometry import planar_pose
+from common.recording import RecordingWriter
+from common.trajectory import write_tum
+from deploy.report import format_pipeline_summary, pipeline_summary
+
+
+def test_summary_reports_accuracy_target_and_files(tmp_path):
+    stamps = np.arange(20, dtype=np.int64) * 100_000_000
+    truth = np.array([planar_pose(0.1 * k, 0.0, 0.0) for k in range(20)])
+    est = truth.copy()
+    est[:, 1, 3] += 0.05                      # 5 cm to the side all along
+    write_tum(tmp_path / "truth.tum", stamps, truth)
+    write_tum(tmp_path / "estimated.tum", stamps, est)
+    (tmp_path / "run.json").write_text(json.dumps({"services": {
+        "sim": {"progress": 20, "restarts": 0},
+        "evolver": {"progress": 18, "restarts": 1, "rates": {"frames_skipped": 2.0, "generations_per_s": 150.0}}}}))
+    with RecordingWriter(tmp_path / "recording.mcap") as rec:
+        rec.write("rig/planner/target", m.encode(m.Target(x=2.0, y=0.0, header=m.header(1, 1, "map"))), 1)
+        rec.write("rig/planner/cmd_vel", m.encode(m.VelocityCommand(stop=True, reason="target reached")), 2)
+        rec.write("rig/planner/cmd_vel", m.encode(m.VelocityCommand(stop=True, reason="planner stopped")), 3)
+    s = pipeline_summary(tmp_path)
+    assert s["frames"] == 20 and s["frames_used_by_evolver"] == 18 and s["frames_skipped"] == 2
+    assert s["target"] == "reached"           # the planner's own shutdown is not the outcome
+    assert abs(s["final_position_error_m"] - 0.05) < 1e-6 and s["ate_rmse_m"] < 1e-3  # ATE aligns, final error does not
+    assert abs(s["true_distance_to_target_m"] - 0.1) < 1e-6
+    assert s["restarts"] == {"evolver": 1}
+    text = format_pipeline_summary(s)
+    assert "target               reached" in text and str(tmp_path / "recording.mcap") in text
+
+
+def test_summary_says_what_is_missing(tmp_path):
+    text = format_pipeline_summary(pipeline_summary(tmp_path))
+    assert "no estimated and ground-truth trajectories" in text and "unknown" in text
