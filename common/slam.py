@@ -58,6 +58,10 @@ class LocaliserConfig:
     # sigma = base + rate × distance (x, y in metres; yaw in radians).
     prior_sigma_xy: tuple = (0.01, 0.05)
     prior_sigma_yaw: tuple = (0.01, 0.08)   # miscalibrated wheels curve the path by ~2°/m
+    # Turning on the spot moves no distance but a 3 % track-width error costs 3 % of every turn: the yaw
+    # prior also grows by this much per radian turned since the last fix (a closed-loop run that turned
+    # around at its target rejected every registration afterwards and its map frame rotated).
+    prior_sigma_yaw_per_rad: float = 0.05
     registration_sigma: tuple = (0.3, 0.03, np.deg2rad(0.6))   # along, across the view (m), heading (rad)
     gate_chi2: float = 16.0             # reject a registration this far (Mahalanobis²) from the prediction
     use_stereo_model: bool = True       # depth-uncertainty and footprint weights (see registration)
@@ -110,6 +114,7 @@ class FlyLocaliser:
         self.stereo = (StereoModel(calibration, depth_range=(0.3, self.config.max_depth_m))
                        if calibration is not None and self.config.use_stereo_model else None)
         self._driven_since_fix = 0.0
+        self._turned_since_fix = 0.0
         self._last_pred: np.ndarray | None = None
 
         self.keyframes: deque[Keyframe] = deque(maxlen=self.config.max_keyframes)
@@ -177,6 +182,8 @@ class FlyLocaliser:
             T = self.T_map_odom @ T_odom_base
             if self._last_pred is not None:
                 self._driven_since_fix += float(np.linalg.norm(T[:2, 3] - self._last_pred[:2, 3]))
+                rel = invert(self._last_pred) @ T
+                self._turned_since_fix += abs(float(np.arctan2(rel[1, 0], rel[0, 0])))
             self._last_pred = T
             return T, "odometry"
         tr = self._track
@@ -263,6 +270,7 @@ class FlyLocaliser:
         # f maps B's frame (predicted base) into A's frame (true base): T_true_pred.
         T_map_base = T_pred @ invert(planar_pose(*f_post))
         self._driven_since_fix = 0.0
+        self._turned_since_fix = 0.0
         cov = np.zeros((6, 6))
         cov[np.ix_([0, 1, 5], [0, 1, 5])] = cov3
         cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-6
@@ -296,7 +304,7 @@ class FlyLocaliser:
         d = self._driven_since_fix
         if source == "odometry":
             sxy = c.prior_sigma_xy[0] + c.prior_sigma_xy[1] * d
-            syaw = c.prior_sigma_yaw[0] + c.prior_sigma_yaw[1] * d
+            syaw = c.prior_sigma_yaw[0] + c.prior_sigma_yaw[1] * d + c.prior_sigma_yaw_per_rad * self._turned_since_fix
         else:  # constant velocity or nothing: a weak prior
             sxy, syaw = 0.5, np.deg2rad(10)
         prior_info = np.diag([1 / sxy**2, 1 / sxy**2, 1 / syaw**2])
