@@ -88,8 +88,11 @@ def test_recorder_killed_with_sigkill_leaves_a_readable_file(tmp_path, zenoh_por
     reader = RecordingReader(dst)
     got = list(reader.messages())
     assert reader.error is not None  # no footer: it was killed
-    assert len(got) > 50
+    # Everything flushed before the kill (> 200 kB of ~19 kB frames) reads back, and every message is whole.
+    assert len(got) >= 10
     assert {m.key for m in got} >= {"rig/stereo/frame", "rig/odom/wheels"}
+    from common import messages
+    assert all(messages.decode(m.payload) is not None for m in got)
 
 
 def test_writer_survives_unknown_payloads(tmp_path):
