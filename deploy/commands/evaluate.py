@@ -1,4 +1,4 @@
-"""`flyslam eval RECORDING --out DIR`: run evolver and localiser on a recording and score the trajectory.
+"""`flyslam eval RECORDING --out DIR`: run evolver and localiser in lockstep on a recording and score the trajectory.
 
 Runs the chain in lockstep (every frame, a fixed number of generations per frame, deterministic for a
 seed; see common.lockstep), then writes to DIR:
