@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.geometry import invert, make_transform, planar_from_transform, planar_pose, transform_points
+from common.geometry import invert, planar_from_transform, planar_pose, transform_points
 from common.registration import PopulationError, register_planar
 from common.registration.register import StereoModel
 

@@ -16,7 +16,6 @@ import sys
 import threading
 import time
 
-import numpy as np
 
 from common import messages as m
 from common.camera import CalibrationError

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import zenoh
 
-from common.messages import StereoCalibrationMsg
 from common.recording import RecordingWriter
 from services.base import run_service, service_parser
 

@@ -6,10 +6,8 @@ import sys
 import textwrap
 import time
 
-import numpy as np
 
 from common.bus import BusOptions, Node
-from common.images import make_frame
 from common.messages import StereoFrame, Target, header
 from tests.helpers import ROOT, hub, wait_until
 

@@ -1,5 +1,4 @@
 """Scenario files: the shipped ones are usable, bad ones fail with the file and field named."""
-from pathlib import Path
 
 import numpy as np
 import pytest

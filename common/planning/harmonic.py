@@ -168,6 +168,33 @@ def plain_sor(u, state, omega, max_sweeps, tol):
 
 
 @njit(cache=True)
+def _steepest_neighbour(psi, state, y, x):
+    """(row, col) of the neighbour of (y, x), among 8, with the steepest strict ascent of ``psi``, or
+    (-1, -1). Diagonal moves need both orthogonal cells passable (no corner cutting)."""
+    pc = psi[y, x]
+    best = 0.0
+    by = -1
+    bx = -1
+    inv_sqrt2 = 1.0 / np.sqrt(2.0)
+    for k in range(8):
+        ny = y + _NB8[k, 0]
+        nx = x + _NB8[k, 1]
+        if state[ny, nx] == BLOCKED:
+            continue
+        scale = 1.0
+        if k >= 4:
+            if state[y, nx] == BLOCKED or state[ny, x] == BLOCKED:
+                continue
+            scale = inv_sqrt2
+        slope = (psi[ny, nx] - pc) * scale
+        if slope > best:
+            best = slope
+            by = ny
+            bx = nx
+    return by, bx
+
+
+@njit(cache=True)
 def descent_successor(psi, state):
     """Discrete steepest ascent of ``psi`` (= descent of the potential) among the 8 neighbours.
 
@@ -176,7 +203,6 @@ def descent_successor(psi, state):
     (a spurious local optimum, or a flat field), -2 for target cells."""
     h, w = psi.shape
     nxt = np.full((h, w), -1, dtype=np.int64)
-    inv_sqrt2 = 1.0 / np.sqrt(2.0)
     for y in range(1, h - 1):
         for x in range(1, w - 1):
             st = state[y, x]
@@ -185,26 +211,8 @@ def descent_successor(psi, state):
                 continue
             if st != ACTIVE:
                 continue
-            pc = psi[y, x]
-            best = 0.0
-            arg = -1
-            for k in range(8):
-                dy = _NB8[k, 0]
-                dx = _NB8[k, 1]
-                ny = y + dy
-                nx = x + dx
-                if state[ny, nx] == BLOCKED:
-                    continue
-                scale = 1.0
-                if k >= 4:
-                    if state[y, nx] == BLOCKED or state[ny, x] == BLOCKED:
-                        continue
-                    scale = inv_sqrt2
-                slope = (psi[ny, nx] - pc) * scale
-                if slope > best:
-                    best = slope
-                    arg = ny * w + nx
-            nxt[y, x] = arg
+            ny, nx = _steepest_neighbour(psi, state, y, x)
+            nxt[y, x] = ny * w + nx if ny >= 0 else -1
     return nxt
 
 
@@ -256,33 +264,13 @@ def descent_path(psi, state, y0, x0, max_steps):
     """Cells visited by discrete steepest ascent of ``psi`` from (y0, x0) until a target cell, a stuck cell
     or ``max_steps``.  Returns (K, 2) int64 (y, x)."""
     nxt = np.empty((max_steps + 1, 2), dtype=np.int64)
-    h, w = psi.shape
     y = y0
     x = x0
     k = 0
     nxt[0, 0] = y
     nxt[0, 1] = x
-    inv_sqrt2 = 1.0 / np.sqrt(2.0)
     while k < max_steps and state[y, x] == ACTIVE:
-        pc = psi[y, x]
-        best = 0.0
-        by = -1
-        bx = -1
-        for j in range(8):
-            ny = y + _NB8[j, 0]
-            nx = x + _NB8[j, 1]
-            if state[ny, nx] == BLOCKED:
-                continue
-            scale = 1.0
-            if j >= 4:
-                if state[y, nx] == BLOCKED or state[ny, x] == BLOCKED:
-                    continue
-                scale = inv_sqrt2
-            slope = (psi[ny, nx] - pc) * scale
-            if slope > best:
-                best = slope
-                by = ny
-                bx = nx
+        by, bx = _steepest_neighbour(psi, state, y, x)
         if by < 0:
             break
         y = by

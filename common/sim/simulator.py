@@ -29,7 +29,7 @@ from common.geometry import R_BODY_OPTICAL, make_transform, planar_pose, rot_y
 from common.sim.motion import CommandMotion, make_motion
 from common.sim.render import Renderer, noise_table
 from common.sim.scenario import Scenario
-from common.sim.sensors import OdometryReading, SonarReading, SonarRing, WheelOdometry
+from common.sim.sensors import SonarRing, WheelOdometry
 from common.sim.world import World
 
 SUBSTEP_NS = 5_000_000
