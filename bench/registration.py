@@ -11,9 +11,12 @@ Figures (milliseconds are medians of repeated runs, numba compile time excluded 
                           (CIC deposit, FFT far field, near-field cell list) — NOT included in:
   fast_delta_ms           field.delta(A): δ evaluated at A's 5,000 (20,000) points on that PREBUILT
                           field, i.e. one far-field interpolation + one near sum per point of A;
-                          fast_rel_error = |fast − exact| / exact, fast_grid_shape the grid
+                          fast_rel_error = |fast − exact| / exact, fast_grid_shape the grid;
+                          fast_grad_rel_error the median over A of |∇S_fast − ∇S_exact| / |∇S_exact|
+  fast_before_*           the same with the defaults before the TSC deposit (CIC, near_cells=2),
+                          timed interleaved with fast_delta_ms on the same run
   fast_lean_*             the same with the registration's field options (max_cells=120,000,
-                          near_cells=1): cheaper build, δ within ≈0.3 %, gradients less accurate
+                          near_cells=1): cheaper build
   register_3dof_ms        register_planar(A, B) with the paper's δ (field build included; every call
                           builds its own field over the search reach)
   register_3dof_stereo_ms register_planar(..., stereo=StereoModel(rig)): the deep-scene variant the
@@ -41,6 +44,13 @@ from common.registration import (PseudoDistanceField, StereoModel, field_exact, 
                                  register_6dof, register_planar, scenes)
 
 TRUTH = (0.3, 0.8, np.deg2rad(4.0))
+
+# PseudoDistanceField options per figure prefix: "" the defaults (TSC deposit, r_c = h); "before_" the
+# defaults until 2026-11 (CIC deposit, r_c = 2h, x-y columns of 2 r_c), timed on the same run; "lean_"
+# the options the registration uses (coarser grid, cheaper build).
+FIELD_OPTIONS = {"": {},
+                 "before_": dict(deposit="cic", near_cells=2.0, cells_per_radius=0.5),
+                 "lean_": dict(max_cells=120_000, near_cells=1.0)}
 
 
 CPU = {}
@@ -94,18 +104,35 @@ def measure(n, eps, repeat):
     field_exact(A[:10], B, eps)  # compile
     _, out["exact_numba_delta_ms"] = timed(lambda: field_exact(A, B, eps), 2)
     bounds = (A.min(0), A.max(0))
-    for key, opts in (("", {}), ("lean_", dict(max_cells=120_000, near_cells=1.0))):
+    _, G_exact = field_exact(A, B, eps, with_grad=True)
+    fields = {}
+    for key, opts in FIELD_OPTIONS.items():
         PseudoDistanceField(B[:100], eps, **opts).delta(A[:10])  # compile
-        field, build_ms = timed(lambda: PseudoDistanceField(B, eps, bounds=bounds, **opts), 3, "b")
-        fast, fast_ms = timed(lambda: field.delta(A), repeat, "d")
-        out["fast_" + key + "delta_cpu_ms"] = CPU["d"]
         tag = "fast_" + key
+        field, build_ms = timed(lambda: PseudoDistanceField(B, eps, bounds=bounds, **opts), 3, "b")
+        fields[key] = field
         out[("field_build_ms" if not key else tag + "field_build_ms")] = build_ms
         out[("field_build_cpu_ms" if not key else tag + "field_build_cpu_ms")] = CPU["b"]
-        out[tag + "delta_ms"] = fast_ms
+        fast = field.delta(A)
         out[tag + "rel_error"] = abs(fast - exact) / exact
+        G = field.field(A, with_grad=True)[1]
+        out[tag + "grad_rel_error"] = float(np.median(np.linalg.norm(G - G_exact, axis=1)
+                                                      / np.linalg.norm(G_exact, axis=1)))
         out[tag + "grid_shape"] = list(field.shape)
         out[tag + "near_radius_m"] = field.rc
+    # The configurations are timed in interleaved rounds, so that load from other processes on the
+    # shared machine falls on all of them alike (the before/after comparison is on the same run).
+    walls = {key: [] for key in fields}
+    cpus = {key: [] for key in fields}
+    for _ in range(repeat):
+        for key, field in fields.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            field.delta(A)
+            walls[key].append(time.perf_counter() - t0)
+            cpus[key].append(time.process_time() - c0)
+    for key in fields:
+        out["fast_" + key + "delta_ms"] = 1e3 * float(np.median(walls[key]))
+        out["fast_" + key + "delta_cpu_ms"] = 1e3 * float(np.median(cpus[key]))
     print(f"[{n} flies] registering", file=sys.stderr)
     register_planar(A[:500], B[:500])  # compile
     register_planar(A[:500], B[:500], stereo=StereoModel(rig))

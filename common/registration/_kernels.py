@@ -135,6 +135,37 @@ def cic_deposit(P, w, lo, h, shape):
 
 
 @njit(cache=True, error_model="numpy")
+def tsc_deposit(P, w, lo, h, shape):
+    """Triangular-shaped-cloud (quadratic B-spline, 27-node) deposit of weights w at points P onto a
+    grid starting at lo.
+
+    Smoother than cloud-in-cell (its window is sinc³ rather than sinc², so less aliasing of the
+    kernel's core into the grid): measured on the deep street with r_c = h, δ within 0.05 % of exact
+    instead of 0.25 % with CIC, the gradient within 3.5 % instead of 4.2 % (median).
+    """
+    rho = np.zeros((shape[0], shape[1], shape[2]))
+    for j in range(P.shape[0]):
+        fx = (P[j, 0] - lo[0]) / h
+        fy = (P[j, 1] - lo[1]) / h
+        fz = (P[j, 2] - lo[2]) / h
+        ix = min(max(int(np.floor(fx + 0.5)), 1), shape[0] - 2)
+        iy = min(max(int(np.floor(fy + 0.5)), 1), shape[1] - 2)
+        iz = min(max(int(np.floor(fz + 0.5)), 1), shape[2] - 2)
+        dx = fx - ix
+        dy = fy - iy
+        dz = fz - iz
+        wx = (0.5 * (0.5 - dx) ** 2, 0.75 - dx * dx, 0.5 * (0.5 + dx) ** 2)
+        wy = (0.5 * (0.5 - dy) ** 2, 0.75 - dy * dy, 0.5 * (0.5 + dy) ** 2)
+        wz = (0.5 * (0.5 - dz) ** 2, 0.75 - dz * dz, 0.5 * (0.5 + dz) ** 2)
+        for a in range(3):
+            for b in range(3):
+                wab = w[j] * wx[a] * wy[b]
+                for c in range(3):
+                    rho[ix - 1 + a, iy - 1 + b, iz - 1 + c] += wab * wz[c]
+    return rho
+
+
+@njit(cache=True, error_model="numpy")
 def build_cells(B, wb, lo, cell, dims):
     """3-D cell list of B (cell sizes `cell` (3,) per axis): flies sorted by cell (x-major, then y,
     then z), as float32 SoA.

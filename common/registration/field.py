@@ -6,24 +6,29 @@ exact sum is n·p kernel evaluations (25 M for 5,000 flies each: tens of ms even
 The kernel is split, as in particle-particle/particle-mesh (P³M) solvers, into
 
 * a smooth far part K_far(r) = K(r) for r ≥ r_c and a quadratic in r² inside (value and slope matched
-  at r_c), convolved with B's cloud-in-cell deposit by one real FFT, sampled on a grid of spacing h and
-  read back by trilinear interpolation (its gradient by trilinear interpolation of central
-  differences of the grid);
+  at r_c), convolved with B's triangular-shaped-cloud (TSC) deposit by one real FFT, sampled on a grid
+  of spacing h and read back by tricubic (Catmull-Rom) interpolation, value and analytic gradient;
 * a compact near part K − K_far (zero beyond r_c = near_cells·h), summed exactly over the neighbours
-  of each query point found through a z-sorted x-y column list of B (column width r_c).
+  of each query point found through a 3-D cell list of B (cells.py).
 
 Measured (bench/registration.py and the sweeps behind this choice, deep street scene, n = p = 5,000,
 ε = 0.1 m, 2 shared cores under load): the exact δ takes ≈1.1 s in numpy float64 and ≈0.1 s with the
-parallel numba sum.  With the defaults (max_cells=360,000, so h ≈ 0.6 m; near_cells=2) the build
-(deposit, FFT convolution, cell list) takes ≈35 ms and δ at A's 5,000 points ≈1.1 ms CPU:
-≈0.13 ms for the tricubic far field, the rest the near sum; |fast − exact| / exact ≤ 0.1 % for ε in
-{0.01, 0.1, 1} and the per-point gradient is within ≈1.5 % (median) of exact.  The near radius sets
-the accuracy (as a ratio r_c/h): near_cells=1 gives δ within ≈0.3 % but gradients off by 10–20 %;
-1.5 gives δ within ≈0.15 % and gradients within 3–8 %.  A finer grid buys a smaller r_c, i.e. fewer
-neighbours per query, at the cost of the build: max_cells=120,000 (h ≈ 0.9 m) builds in ≈10 ms and
-evaluates in ≈1.4 ms (≈1.0 ms with near_cells=1, δ within 0.3 %); the registration, which rebuilds
-the field for every call, uses the latter.  Below ≈1 ms the near sum is bound by its per-query part
-(column lookups and the scalar tails of the vectorised runs), not by r_c.
+parallel numba sum.  The near radius sets the cost (the near sum is ≈80 % of the evaluation) and,
+with the deposit, the accuracy: the smoothing of the deposit aliases the kernel's core into the grid.
+Until 2026-11 the defaults were a cloud-in-cell deposit with near_cells=2 (r_c = 1.2 m): δ within
+0.085 % in ≈1.1 ms, the gradient within ≈1.5 % (median).  With CIC, near_cells=1 was ≈1.5× faster but
+δ only within 0.25 %.  A TSC deposit (quadratic B-spline, window sinc³, deconvolved like CIC's) cuts
+that aliasing (the per-point field error at a typical fly drops 1.4–2.7×), so the default is TSC,
+near_cells=1, x-y columns of r_c/0.35, max_cells=360,000 (h ≈ 0.6 m): the build (deposit, FFT
+convolution, cell list) ≈35 ms and δ at A's 5,000 points ≈0.65 ms (≈0.13 ms tricubic far field,
+≈0.5 ms near sum).  What that costs in accuracy, over three population pairs: δ within 0.04–0.2 %
+(CIC, near_cells=2: 0.02–0.085 %), the field within 0.05–0.18 % at the median fly but up to 2 % at
+the worst one (0.6 %), the gradient within ≈3.5 % (1.5 %) at the median fly.  TSC with
+near_cells=1.5 matches or beats the old accuracy on every count at ≈1.0 ms; near_cells=2 gives
+gradients within ≈1.2 % at ≈1.8× the cost.  A finer grid buys a smaller r_c at the cost of the
+build: max_cells=120,000 (h ≈ 0.9 m) builds in ≈10 ms; the registration, which rebuilds the field for
+every call, uses it.  At near_cells=1 the near sum is bound by its per-query part (column lookups
+and the scalar tails of the vectorised runs) as much as by r_c.
 
 Where the time went, and what did not help: the near sum is over the flies packed near the camera
 (≈70 neighbours within 0.9 m on average, ≈250 within 1.8 m).  Its loop is float32, vectorised by
@@ -52,17 +57,20 @@ from .cells import CellList
 from .pseudo_distance import PopulationError, as_population, as_weights, check_eps
 
 
-def _cic_window(fft_shape) -> np.ndarray:
-    """Fourier transfer function of the cloud-in-cell deposit (sinc² per axis), rfftn layout."""
+DEPOSITS = {"tsc": (_kernels.tsc_deposit, 3), "cic": (_kernels.cic_deposit, 2)}  # (kernel, window power)
+
+
+def _deposit_window(fft_shape, power) -> np.ndarray:
+    """Fourier transfer function of the deposit (sinc^power per axis: 2 for CIC, 3 for TSC), rfftn layout."""
     f0 = np.fft.fftfreq(fft_shape[0])[:, None, None]
     f1 = np.fft.fftfreq(fft_shape[1])[None, :, None]
     f2 = np.fft.rfftfreq(fft_shape[2])[None, None, :]
-    return (np.sinc(f0) * np.sinc(f1) * np.sinc(f2)) ** 2
+    return (np.sinc(f0) * np.sinc(f1) * np.sinc(f2)) ** power
 
 
 @functools.lru_cache(maxsize=8)
-def _far_kernel_spectrum(fft_shape, h, eps, rc, deconvolve):
-    """rfftn of K_far on the circular offset layout (float32), divided by the CIC window.
+def _far_kernel_spectrum(fft_shape, h, eps, rc, deconvolve, power=2):
+    """rfftn of K_far on the circular offset layout (float32), divided by the deposit's window.
 
     Cached: successive frames of the same scene usually reuse the grid shape and spacing (the
     spacing is rounded to a ladder of 2^(1/8) steps for that reason), which saves one of three FFTs.
@@ -70,7 +78,7 @@ def _far_kernel_spectrum(fft_shape, h, eps, rc, deconvolve):
     kern = _kernels.far_kernel_grid(*fft_shape, h, eps, rc).astype(np.float32)
     khat = scipy.fft.rfftn(kern, workers=1)
     if deconvolve:
-        khat /= _cic_window(fft_shape).astype(np.float32)
+        khat /= _deposit_window(fft_shape, power).astype(np.float32)
     khat.setflags(write=False)
     return khat
 
@@ -109,25 +117,31 @@ class PseudoDistanceField:
         evaluated; the grid covers it and B.  Default: B's bounding box.
     spacing : grid spacing h in metres; default from `max_cells`.
     max_cells : grid-size budget when `spacing` is None (memory ≈ 4·8 bytes per cell, FFT ≈ 8× cells).
-    near_cells : near-field radius r_c in grid spacings.  2 (default): δ within ≈0.1 %, its gradient
-        within ≈2 % of exact on the deep street scene; 1: δ within ≈0.3 % and ≈1.5× faster, but the
-        gradient is off by 10–20 %.
+    near_cells : near-field radius r_c in grid spacings.  1 (default, with the TSC deposit): δ within
+        ≈0.2 % of exact on the deep street scene, the per-point gradient within ≈3.5 % (median);
+        1.5: δ within ≈0.06 %, gradient ≈2 %, ≈1.5× slower; 2: δ within ≈0.03 %, gradient ≈1.2 %,
+        ≈1.8× slower (8× the neighbours).
     parallel_min : evaluate in parallel threads only for at least this many points (threads are a
         loss on small batches, and 10× slower when another process holds a core).
-    deconvolve : divide the kernel spectrum by the CIC window (removes the deposit smoothing bias).
-    cells_per_radius : x-y column width of the near-field cell list is r_c / cells_per_radius (0.5
-        measured fastest: few columns per query, each one long contiguous run).
+    deconvolve : divide the kernel spectrum by the deposit's window (removes its smoothing bias).
+    deposit : "tsc" (default: 27-node quadratic B-spline) or "cic" (8-node trilinear, the deposit
+        before the TSC change, kept so the bench can show both).
+    cells_per_radius : x-y column width of the near-field cell list is r_c / cells_per_radius (0.35
+        measured fastest at near_cells=1, 0.5 at 2: few columns per query, each one long
+        contiguous run).
     """
 
     def __init__(self, B, eps, weights_b=None, bounds=None, spacing=None, max_cells: int = 360_000,
-                 near_cells: float = 2.0, deconvolve: bool = True, parallel_min: int = 50_000,
-                 cells_per_radius: float = 0.5):
+                 near_cells: float = 1.0, deconvolve: bool = True, parallel_min: int = 50_000,
+                 cells_per_radius: float = 0.35, deposit: str = "tsc"):
         self.B = as_population(B, "B")
         self.eps = check_eps(eps)
         self.parallel_min = int(parallel_min)
         self.wb = as_weights(weights_b, len(self.B), "weights_b")
         if max_cells < 64:
             raise PopulationError(f"max_cells must be at least 64, got {max_cells}")
+        if deposit not in DEPOSITS:
+            raise PopulationError(f"deposit must be one of {sorted(DEPOSITS)}, got {deposit!r}")
         if near_cells <= 0:
             raise PopulationError(f"near_cells must be positive, got {near_cells}")
         lo = self.B.min(0)
@@ -157,10 +171,11 @@ class PseudoDistanceField:
         if spacing is not None and np.prod(shape) > 50_000_000:
             raise PopulationError(f"spacing {h} m gives a {self.shape} grid, too large")
 
-        # Far field: CIC deposit ⊛ K_far by zero-padded FFT (linear, not circular, convolution).
-        rho = _kernels.cic_deposit(self.B, self.wb, self.lo, h, shape)
+        # Far field: deposit ⊛ K_far by zero-padded FFT (linear, not circular, convolution).
+        deposit_kernel, power = DEPOSITS[deposit]
+        rho = deposit_kernel(self.B, self.wb, self.lo, h, shape)
         fft_shape = tuple(scipy.fft.next_fast_len(2 * s - 1, real=True) for s in self.shape)
-        khat = _far_kernel_spectrum(fft_shape, h, self.eps, self.rc, bool(deconvolve))
+        khat = _far_kernel_spectrum(fft_shape, h, self.eps, self.rc, bool(deconvolve), power)
         self.grid = _convolve_zero_padded(rho.astype(np.float32), khat, fft_shape)
 
         # Near field: 3-D cell list of B (cells of side r_c / cells_per_radius).
