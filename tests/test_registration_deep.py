@@ -36,6 +36,21 @@ def test_covisible_masks_drop_what_the_other_camera_cannot_see():
     assert ma.tolist() == [True, False, False]   # 2.5 m is 1.5 m from the second camera: too close
 
 
+def test_visible_mask_needs_both_stereo_projections_inside_the_images():
+    """A point seen near the left image's left edge projects off the right image (by its disparity):
+    no fly can stand there, so it is not visible to the rig."""
+    from common.registration import visible_mask
+    rig = scenes.deep_rig()
+    z = 3.0
+    disparity = rig.fx * rig.baseline / z                     # tens of pixels at 3 m
+    u_strip = 0.03 * rig.width + 0.5 * disparity               # inside the left image's margin-free area
+    u_centre = rig.cx_left
+    pts = np.array([[(u - rig.cx_left) * z / rig.fx, 0.0, z] for u in (u_strip, u_centre)])
+    ul, ur, _ = rig.project(pts)
+    assert 0.03 * rig.width < ul[0] and ur[0] < 0.03 * rig.width   # left inside, right outside
+    assert visible_mask(pts, rig).tolist() == [False, True]
+
+
 def test_local_correlation_peaks_at_alignment():
     rng = np.random.default_rng(0)
     B = rng.uniform(-3, 3, size=(2000, 3))

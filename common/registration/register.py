@@ -48,7 +48,9 @@ Shanno-scaled BFGS and a step cap of one lattice spacing (no fewer evaluations o
 minima on some runs); a smaller registration grid (80k cells: −3 ms, results moved by 1–2 cm).
 
 Failures (``res.ok`` False with ``res.reason``; never an exception for well-formed input): too few
-flies; a minimum on the window boundary; a Hessian that is not positive definite; a flat minimum (the
+flies; a minimum on the window boundary; a Hessian that is not positive definite (from differences
+of the analytic gradient, or, when those are indefinite, from second differences of δ's values —
+a cusp at a sharp small-ε minimum passes, a saddle does not: see _value_hessian); a flat minimum (the
 smallest eigenvalue of the Hessian, rotations scaled to metres by the population's radius, below
 ``flat_ratio`` of the stiffest curvature, that of the larger of the Hessian's largest eigenvalue and
 the curvature of δ under a free 3-D translation — so a ground plane under a planar search, flat in
@@ -250,6 +252,36 @@ def _bfgs_box(fun, x0, lo, hi, maxiter, xtol=1e-5, ftol=1e-10):
     return x, f
 
 
+def _value_hessian(fun, p, fd):
+    """Hessian of the scalar `fun` at p from second differences of its values, step fd[i] per parameter:
+    H_ii from the axis stencils, H_ij by polarisation from the stencil along e_i + e_j
+    (c(e_i + e_j) = H_ii + H_jj + 2 H_ij for the second differences c); 1 + k + k² evaluations.
+
+    The registration's fallback when the Hessian from differences of the analytic gradient is not
+    positive definite.  At small ε two populations seen on the same pixels give δ a cusp at the
+    minimum, where the gradient jumps; the gradient differences across it measured a large secant
+    curvature on each axis but cross terms that made the matrix indefinite, and 98 % of such
+    registrations (bench/paper.py, equivalent populations, ε = 0.03 m), within a millimetre of the
+    truth, were reported "not a minimum".  Second differences of values ask what the check means —
+    is J larger all around p at the step's scale — and equal the gradient Hessian where J is smooth.
+    Not used everywhere: they weight the curvature towards p itself (a triangle kernel over ±step,
+    where gradient differences average it uniformly), so on a rough but flat valley — a plane
+    sliding along itself — the micro-basin the optimiser stopped in looks stiffer than it is and the
+    flat-minimum check would pass it.
+    """
+    k = len(p)
+    E = np.diag(np.asarray(fd, dtype=float))
+    f0 = fun(p)
+    c = np.array([fun(p + E[i]) + fun(p - E[i]) - 2.0 * f0 for i in range(k)])
+    H = np.diag(c / np.diag(E) ** 2)
+    for i in range(k):
+        for j in range(i + 1, k):
+            d = E[i] + E[j]
+            cij = fun(p + d) + fun(p - d) - 2.0 * f0
+            H[i, j] = H[j, i] = (cij - c[i] - c[j]) / (2.0 * E[i, i] * E[j, j])
+    return H
+
+
 def _lattice(center, half, counts):
     axes = [np.linspace(c - h, c + h, n) if n > 1 else np.array([c]) for c, h, n in zip(center, half, counts)]
     mesh = np.meshgrid(*axes, indexing="ij")
@@ -355,7 +387,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     if objective == "delta":
         # The field is rebuilt for every registration, so its build counts: a 120,000-cell grid over
         # the whole search reach (≈10 ms) with near_cells=1 (r_c = 2 spacings would gather hundreds
-        # of neighbours per fly; δ stays within ≈0.3 %).
+        # of neighbours per fly; with the TSC deposit δ stays within ≈0.05–0.2 %).
         opts = dict(dict(near_cells=1.0, max_cells=120_000), **(field_options or {}))
         fld = PseudoDistanceField(B, eps, weights_b=wb, bounds=(lo - pad, hi + pad), **opts)
         fld_coarse, coarse_near = fld, False
@@ -429,9 +461,15 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         gm = full.value_and_grad(p_best - e)[1]
         H[i] = (gp - gm) / (2 * fd[i])
     H = 0.5 * (H + H.T)
+    evals += 2 * k
+    if np.linalg.eigvalsh(H)[0] <= 0:
+        # Not positive definite from gradient differences: a saddle, or a cusp (see _value_hessian).
+        # Ask the values whether J rises all around p; a true cusp minimum passes, a saddle does not.
+        H = _value_hessian(full.value, p_best, fd)
+        evals += k * k + 1
     _, Jf = full.per_fly(p_best)
     Jf = Jf - Jf.mean(0)
-    evals += 2 * k + 1
+    evals += 1
     rot = np.array([i >= (2 if mode in PLANES else 3) for i in range(k)])
     units = np.where(rot, L, 1.0)               # rotations expressed as metres of arc at radius L
     Hs = H / np.outer(units, units)

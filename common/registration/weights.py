@@ -64,13 +64,21 @@ def footprint_weights(points, calib: StereoCalibration, frame: str = "optical",
 
 def visible_mask(points, calib: StereoCalibration, depth_range=(0.0, np.inf), margin: float = 0.03,
                  frame: str = "optical") -> np.ndarray:
-    """Which points (in this camera's frame) fall inside its image, `margin` of the size away from the
-    border, and within `depth_range` metres."""
+    """Which points (in this rig's frame) a stereo fly could stand on: in front of the rig, projecting
+    inside BOTH images, `margin` of the size away from their borders, and within `depth_range` metres.
+
+    Both images: a fly is evaluated on its left and right projections, so the left image's strip
+    where the right projection falls off the right image's left edge (as wide as the disparity: tens
+    of pixels at short range) never holds a fly.  That strip is fixed to the camera; a mask that
+    checks the left image only leaves it in, i.e. a camera-fixed hole in one population, which pulls
+    the registration towards no motion.
+    """
     P = to_optical(as_population(points, "points", allow_empty=True), calib, frame)
-    u, _, v = calib.project(P)
+    ul, ur, v = calib.project(P)
     mu, mv = margin * calib.width, margin * calib.height
     with np.errstate(invalid="ignore"):
-        return ((u >= mu) & (u <= calib.width - mu) & (v >= mv) & (v <= calib.height - mv)
+        return ((ul >= mu) & (ul <= calib.width - mu) & (ur >= mu) & (ur <= calib.width - mu)
+                & (v >= mv) & (v <= calib.height - mv) & (P[:, 2] > 0)
                 & (P[:, 2] >= depth_range[0]) & (P[:, 2] <= depth_range[1]))
 
 
