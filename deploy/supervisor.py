@@ -18,6 +18,8 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
     ends_run = false                # when it exits 0, the whole run stops (e.g. a replay that finished)
     liveliness_timeout_s = 20       # alive process without a liveliness token this long = hung, restarted
     stop_timeout_s = 10             # SIGTERM, then SIGKILL after this long
+    nice = 0                        # raise the process's niceness (0-19): services off the critical
+                                    # path (viewer bridge, recorder) yield the CPU to those on it
 
 ``{out}``, ``{root}`` and ``{recordings}`` are substituted in args, and so are the launch file's own
 ``[vars]`` (defaults) as overridden by ``--var NAME=VALUE`` on the command line. Services stop in the reverse of start
@@ -71,6 +73,7 @@ class ServiceSpec:
     liveliness_timeout_s: float = 20.0
     stop_timeout_s: float = 10.0
     start_delay_s: float = 0.0
+    nice: int = 0
 
 
 @dataclass
@@ -107,6 +110,8 @@ def load_launch(path: Path) -> LaunchFile:
             raise LaunchError(f"{where} ({spec.name}): restart must be one of {RESTART_POLICIES}, got {spec.restart!r}")
         if not isinstance(spec.args, list) or not all(isinstance(a, str) for a in spec.args):
             raise LaunchError(f"{where} ({spec.name}): args must be a list of strings")
+        if not isinstance(spec.nice, int) or not 0 <= spec.nice <= 19:
+            raise LaunchError(f"{where} ({spec.name}): nice must be an integer in 0..19, got {spec.nice!r}")
         services.append(spec)
     if not services:
         raise LaunchError(f"{path}: no [[service]] entries")
@@ -137,6 +142,15 @@ def _die_with_parent():
     os.setpgrp()  # own process group: a terminal's Ctrl-C reaches the supervisor, which stops us in order
 
 
+def _child_setup(nice: int):
+    """The child's pre-exec function: die with the parent, then lower its priority by ``nice``."""
+    def setup():
+        _die_with_parent()
+        if nice:
+            os.nice(nice)
+    return setup
+
+
 @dataclass
 class Child:
     spec: ServiceSpec
@@ -156,7 +170,7 @@ class Child:
         with open(self.log_path, "ab") as logf:
             logf.write(f"\n=== start #{self.restarts + 1} at {time.strftime('%H:%M:%S')}: {' '.join(self.argv)}\n".encode())
             self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT, env=env,
-                                         preexec_fn=_die_with_parent, cwd=ROOT)
+                                         preexec_fn=_child_setup(self.spec.nice), cwd=ROOT)
         self.state, self.started_at = "running", time.monotonic()
         self.token_lost_at = None
 
