@@ -3,11 +3,17 @@
 Takes ``stereo/frame`` with latest-value semantics (frames that arrive while it works are skipped and
 counted), the calibration from ``stereo/calibration`` (latched), the odometry pose from ``fusion/odom``
 and the sonar scan from ``fusion/sonar``. On each new frame it moves every fly by the camera's motion
-since the previous frame (proprioceptive fusion), re-scores the population on the new images, evolves
-for ``--settle-ms`` and publishes ``flies/population`` tagged with that frame's seq and stamp; between
-frames it keeps evolving and republishes at ``--publish-hz`` (anytime: the population is always the
-current answer). ``--duty`` caps the share of one core's time it spends evolving between frames, so the
-other services on a small machine keep theirs.
+since the previous frame (proprioceptive fusion), re-scores the population on the new images and evolves
+it until it is *good enough* — its mean fitness is back to ``--recovery`` × what it was on the previous
+frame, after at least ``--min-generations`` — or ``--settle-ms`` has passed, whichever comes first; then
+it publishes ``flies/population`` tagged with that frame's seq and stamp (the pose latency of the whole
+pipeline starts here, so the publication is as early as the population allows). Between frames it keeps
+evolving and republishes at ``--publish-hz`` (anytime: the population is always the current answer).
+``--duty`` caps the share of one core's time it spends evolving between frames, so the other services on
+a small machine — above all the localiser registering the population just published — keep theirs.
+
+``--trace`` also publishes, per frame, when it was taken, decoded, re-scored and published
+(``trace/evolver``, msgpack, monotonic ns) so that bench/pipeline.py can break the latency down.
 """
 from __future__ import annotations
 
@@ -16,10 +22,12 @@ import sys
 import threading
 import time
 
+import msgpack
 
 from common import messages as m
 from common.camera import CalibrationError
 from common.fly import EvolverConfig, FlyEvolver
+from common.fly.scheduling import SettlePolicy, population_quality, settle
 from common.geometry import invert
 from common.images import frame_images
 from common.pose_buffer import PoseBuffer
@@ -33,12 +41,19 @@ def build_parser():
     p.add_argument("--population", type=int, default=5000, help="number of flies")
     p.add_argument("--depth-min", type=float, default=0.3, help="nearest fly depth (m)")
     p.add_argument("--depth-max", type=float, default=30.0, help="farthest fly depth (m); inf allowed")
-    p.add_argument("--settle-ms", type=float, default=40.0, help="evolution time on a new frame before publishing")
+    p.add_argument("--settle-ms", type=float, default=40.0,
+                   help="longest evolution on a new frame before publishing (ms)")
+    p.add_argument("--min-generations", type=int, default=1,
+                   help="generations on a new frame before its population may be published")
+    p.add_argument("--recovery", type=float, default=0.95,
+                   help="publish a new frame's population once its mean fitness is back to this fraction of "
+                        "the previous frame's (1 = full recovery; 0 = after --min-generations)")
     p.add_argument("--publish-hz", type=float, default=10.0, help="republish rate between frames")
     p.add_argument("--duty", type=float, default=0.7, help="fraction of wall time spent evolving between frames")
     p.add_argument("--threads", type=int, default=None, help="numba threads for the fitness kernel")
     p.add_argument("--sonar-weight", type=float, default=0.0, help="weight of the sonar fitness term (0 = off)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trace", action="store_true", help="publish per-frame stage times on trace/evolver")
     return p
 
 
@@ -74,6 +89,8 @@ def body(node, args) -> int:
     node.subscribe("fusion/sonar", m.SonarScan, inputs.on_sonar)
     frames = node.subscribe_latest("stereo/frame", m.StereoFrame)
     out = node.publisher("flies/population")
+    trace = node.publisher("trace/evolver") if args.trace else None
+    settle_policy = SettlePolicy(args.settle_ms / 1000, args.min_generations, args.recovery)
     calib_msg = node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0)
     if calib_msg is not None:
         inputs.on_calibration(calib_msg)
@@ -100,7 +117,7 @@ def body(node, args) -> int:
             node.rates["generations_per_s"] = (evolver.generation - generations_window[1]) / (now - generations_window[0])
             generations_window = (now, evolver.generation)
         frame = frames.take()
-        if frame is None and evolver is None:
+        if frame is None and current is None:
             node.sleep(0.005)
             continue
         if frame is not None:
@@ -128,9 +145,11 @@ def body(node, args) -> int:
                     if args.sonar_weight > 0:
                         _attach_sonar(evolver, inputs, calib, args.sonar_weight)
                     last_T_odom_cam = None
+                    current = None
                     log.info("calibration %dx%d f=%.1f B=%.3f: %d flies", calib.width, calib.height, calib.fx,
                              calib.baseline, args.population)
                 used_calib_msg = cmsg
+            t_take = time.monotonic_ns()
             try:
                 left, right = frame_images(frame)
                 calib.check_image(left, "stereo frame")
@@ -138,6 +157,8 @@ def body(node, args) -> int:
                 node.counters.add("bad_frames")
                 log.warning("frame %d rejected: %s", frame.header.seq, e)
                 continue
+            t_decoded = time.monotonic_ns()
+            reference = population_quality(evolver.fitness) if current is not None else None
             with inputs.lock:
                 T_odom_base = inputs.odom.at(frame.header.stamp_ns)
             T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera
@@ -148,13 +169,19 @@ def body(node, args) -> int:
             last_T_odom_cam = T_odom_cam if T_odom_cam is not None else last_T_odom_cam
             evolver.set_images(left, right)
             current = (frame.header.seq, frame.header.stamp_ns, T_odom_cam)
-            t_end = time.monotonic() + args.settle_ms / 1000
-            while time.monotonic() < t_end:
-                evolver.step(1)
+            t_ready = time.monotonic_ns()
+            generations = settle(evolver, reference, settle_policy)
             publish()
+            t_published = time.monotonic_ns()
             last_publish = time.monotonic()
             node.progress += 1
             node.rates["frames_skipped"] = float(frames.skipped)
+            node.rates["settle_generations"] = float(generations)
+            if trace is not None:
+                trace.put_raw(msgpack.packb({"seq": int(frame.header.seq), "take": t_take, "decoded": t_decoded,
+                                             "ready": t_ready, "published": t_published,
+                                             "generations": generations, "reference": reference,
+                                             "quality": population_quality(evolver.fitness)}))
             continue
         # Between frames: evolve with a duty cycle, republish at the configured rate.
         t0 = time.monotonic()
