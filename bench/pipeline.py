@@ -13,6 +13,16 @@ Prints, and with --json as one JSON object on the last line:
 - evolver_generations_per_s: from the evolver's heartbeat;
 - peak_rss_mb: peak of the sum of all services' resident memory; rss_growth_mb: second half of the run
   minus first half (≈ 0 when memory is flat). Figures only, no pass/fail.
+- stages_ms: where a frame's latency goes (p50/p99 over the frames that got a pose), from the evolver's
+  per-frame trace (``--trace``: monotonic times, the same clock as this process's receive times):
+  frame→take (the frame waits in the evolver's latest-value slot while it finishes a generation or the
+  previous frame), decode (JPEG), rescore (move the flies by odometry, prepare the images, re-score),
+  settle (evolution until good enough), publish→localiser start (the population waits while the
+  localiser finishes the previous one: inferred as max(published, previous pose)), localiser (the rest,
+  up to the pose's arrival here);
+- cpu_percent: each service's CPU time over the run, in % of one core (the machine has two);
+- ate_rmse_m: the localiser's poses against the replayed ground truth (a latency cut must not cost
+  accuracy).
 """
 from __future__ import annotations
 
@@ -27,6 +37,7 @@ import threading
 import time
 from pathlib import Path
 
+import msgpack
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -34,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from common import messages as m  # noqa: E402
 from common.bus import BusOptions, Node  # noqa: E402
+from common.trajectory_metrics import TrajectoryMismatch, evaluate  # noqa: E402
 from common.sim.offline import cached_recording  # noqa: E402
 
 LAUNCH = """
@@ -42,10 +54,18 @@ duration_s = {duration}
 latch = ["fusion/odom", "fusion/pose", "slam/map_to_odom"]
 
 [[service]]
+name = "recorder"
+module = "services.recorder"
+args = ["--out", "{{out}}/recording.mcap", "--keys", "stereo/calibration", "stereo/frame", "odom/*", "sonar/*",
+        "truth/*", "fusion/*", "flies/*", "slam/*", "planner/*", "status/*"]
+nice = {nice_recorder}
+
+[[service]]
 name = "bridge"
 module = "services.bridge"
-args = ["--rrd", "{{out}}/run.rrd", "--grpc-port", "0", "--web-port", "0"]
+args = ["--rrd", "{{out}}/run.rrd", "--grpc-port", "0", "--web-port", "0", "--image-hz", "{image_hz}"]
 required = false
+nice = {nice_bridge}
 
 [[service]]
 name = "fusion"
@@ -54,7 +74,7 @@ module = "services.fusion"
 [[service]]
 name = "evolver"
 module = "services.evolver"
-args = ["--threads", "1", "--settle-ms", "{settle}"]
+args = ["--threads", "1", "--settle-ms", "{settle}", "--recovery", "{recovery}", "--duty", "{duty}", "--trace"]
 
 [[service]]
 name = "localiser"
@@ -63,6 +83,7 @@ module = "services.localiser"
 [[service]]
 name = "planner"
 module = "services.planner"
+nice = {nice_planner}
 
 [[service]]
 name = "replay"
@@ -70,6 +91,10 @@ module = "services.replay"
 args = ["{recording}", "--rate", "1", "--wait-subscribers", "2"]
 ends_run = true
 """
+
+
+CLOCK_TICK = os.sysconf("SC_CLK_TCK")
+STAGES = ("frame_to_take", "decode", "rescore", "settle", "publish_to_localiser", "localiser", "total")
 
 
 def rss_mb(pid: int) -> float:
@@ -80,6 +105,28 @@ def rss_mb(pid: int) -> float:
     except OSError:
         pass
     return 0.0
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process so far (None once it has gone)."""
+    try:
+        fields = (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICK
+
+
+def service_name(pid: int) -> str:
+    """'evolver' for `python -m services.evolver ...`, 'supervisor' for deploy.cli, else the program."""
+    try:
+        argv = (Path("/proc") / str(pid) / "cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return "?"
+    argv = [a.decode(errors="replace") for a in argv if a]
+    if "-m" in argv and argv.index("-m") + 1 < len(argv):
+        module = argv[argv.index("-m") + 1]
+        return "supervisor" if module == "deploy.cli" else module.rsplit(".", 1)[-1]
+    return Path(argv[0]).name if argv else "?"
 
 
 def descendants(pid: int) -> list[int]:
@@ -98,12 +145,69 @@ def descendants(pid: int) -> list[int]:
     return kids
 
 
+def percentiles(values) -> dict | None:
+    v = np.asarray(values, float)
+    if not v.size:
+        return None
+    return {"p50": round(float(np.percentile(v, 50)), 1), "p99": round(float(np.percentile(v, 99)), 1)}
+
+
+def stage_breakdown(frame_seen: dict, traces: dict, poses: dict) -> dict[str, list[float]]:
+    """Per-stage durations (ms) of every frame that has a receive time, an evolver trace and a pose.
+
+    ``frame_seen[seq]`` and ``poses[seq]`` are this process's receive times (monotonic s) of the frame and
+    of the localiser's pose for it; ``traces[seq]`` the evolver's stage times (monotonic ns). The
+    localiser handles one population at a time, so it starts on a population when it has been published
+    *and* the previous pose is out: the difference is waiting, the rest is the localiser's own work
+    (plus the bus hops, which are well under a millisecond here).
+    """
+    out: dict[str, list[float]] = {k: [] for k in STAGES}
+    previous_pose = -np.inf
+    for seq in sorted(poses):
+        if seq in frame_seen and seq in traces:
+            t, f = traces[seq], frame_seen[seq]
+            published = t["published"] * 1e-9
+            start = max(published, previous_pose)
+            durations = {"frame_to_take": t["take"] * 1e-9 - f, "decode": (t["decoded"] - t["take"]) * 1e-9,
+                         "rescore": (t["ready"] - t["decoded"]) * 1e-9,
+                         "settle": (t["published"] - t["ready"]) * 1e-9,
+                         "publish_to_localiser": start - published, "localiser": poses[seq] - start,
+                         "total": poses[seq] - f}
+            for k, v in durations.items():
+                out[k].append(1000 * v)
+        previous_pose = poses[seq]
+    return out
+
+
+def format_breakdown(stages: dict[str, list[float]], cpu: dict[str, float]) -> str:
+    labels = {"frame_to_take": "frame -> evolver takes it", "decode": "  decode (JPEG x2)",
+              "rescore": "  move flies + prepare images + re-score", "settle": "  settle (evolve until good enough)",
+              "publish_to_localiser": "published -> localiser starts", "localiser": "localiser (register + publish)",
+              "total": "frame -> pose (total)"}
+    lines = [f"[pipeline] latency breakdown over {len(stages['total'])} posed frames (ms):",
+             f"[pipeline]   {'stage':<42} {'p50':>7} {'p99':>7}"]
+    for k in STAGES:
+        pc = percentiles(stages[k])
+        if pc:
+            lines.append(f"[pipeline]   {labels[k]:<42} {pc['p50']:7.1f} {pc['p99']:7.1f}")
+    lines.append("[pipeline] CPU per service (% of one core; 200 % = both cores): " +
+                 ", ".join(f"{k} {v:.0f}" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])))
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     p.add_argument("--seconds", type=float, default=30.0, help="length of the replayed run")
     p.add_argument("--fps", type=float, default=30.0)
-    p.add_argument("--settle-ms", type=float, default=25.0, help="evolver time per new frame before publishing")
+    p.add_argument("--settle-ms", type=float, default=25.0,
+                   help="evolver's longest evolution per new frame before publishing")
+    p.add_argument("--recovery", type=float, default=0.95,
+                   help="evolver publishes once the population's mean fitness is back to this fraction of the "
+                        "previous frame's (2 = never: always the whole --settle-ms, the old behaviour)")
+    p.add_argument("--duty", type=float, default=0.7, help="evolver's duty cycle between frames")
+    p.add_argument("--image-hz", type=float, default=5.0, help="bridge's image/flies logging rate")
+    p.add_argument("--no-nice", action="store_true", help="run every service at normal priority")
     p.add_argument("--out", default=str(ROOT / "bench" / "out" / "pipeline"))
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -121,17 +225,22 @@ def main(argv=None) -> int:
         port = s.getsockname()[1]
     hub = f"tcp/127.0.0.1:{port}"
     launch = out / "launch.toml"
-    launch.write_text(LAUNCH.format(duration=args.seconds + 30, settle=args.settle_ms, recording=recording))
+    nice = {"nice_recorder": 0, "nice_bridge": 0, "nice_planner": 0} if args.no_nice else \
+        {"nice_recorder": 10, "nice_bridge": 15, "nice_planner": 5}
+    launch.write_text(LAUNCH.format(duration=args.seconds + 30, settle=args.settle_ms, recording=recording,
+                                    recovery=args.recovery, duty=args.duty, image_hz=args.image_hz, **nice))
 
     frame_seen: dict[int, float] = {}
-    latencies: list[float] = []
+    pose_seen: dict[int, float] = {}
+    traces: dict[int, dict] = {}
+    slam_poses: list[tuple[int, np.ndarray]] = []
+    truth_poses: list[tuple[int, np.ndarray]] = []
     frames_total = [0]
     heartbeats: dict[str, m.Heartbeat] = {}
     lock = threading.Lock()
 
     def on_frame(key, payload):
         # Only the envelope is needed: peek at seq without decoding the images.
-        import msgpack
         obj = msgpack.unpackb(payload, raw=False)
         with lock:
             frame_seen[int(obj["seq"])] = time.monotonic()
@@ -140,9 +249,17 @@ def main(argv=None) -> int:
     def on_pose(msg: m.PoseEstimate):
         now = time.monotonic()
         with lock:
-            t = frame_seen.get(msg.source_seq)
-        if t is not None:
-            latencies.append((now - t) * 1000)
+            pose_seen.setdefault(msg.source_seq, now)
+            slam_poses.append((msg.header.stamp_ns, m.transform_of(msg)))
+
+    def on_truth(msg: m.PoseEstimate):
+        with lock:
+            truth_poses.append((msg.header.stamp_ns, m.transform_of(msg)))
+
+    def on_trace(key, payload):
+        t = msgpack.unpackb(payload, raw=False)
+        with lock:
+            traces[int(t["seq"])] = t
 
     def on_status(key, payload):
         try:
@@ -156,23 +273,60 @@ def main(argv=None) -> int:
                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
     time.sleep(1.0)
     rss_samples: list[tuple[float, float]] = []
+    rss_by_service: dict[str, list[float]] = {}
+    cpu_first: dict[int, tuple[str, float]] = {}
+    cpu_last: dict[int, float] = {}
     with Node("bench-pipeline", BusOptions(connect=[hub], listen=["tcp/127.0.0.1:0"]), handle_signals=False) as node:
         node.subscribe("stereo/frame", None, on_frame, raw=True)
         node.subscribe("slam/pose", m.PoseEstimate, on_pose)
+        node.subscribe("truth/pose", m.PoseEstimate, on_truth)
+        node.subscribe("trace/evolver", None, on_trace, raw=True)
         node.subscribe("status/*", None, on_status, raw=True)
         t_start = time.monotonic()
         while sup.poll() is None:
             pids = descendants(sup.pid)
-            rss_samples.append((time.monotonic() - t_start, sum(rss_mb(pid) for pid in pids)))
-            n = len(latencies)
+            per_pid = {pid: rss_mb(pid) for pid in pids}
+            rss_samples.append((time.monotonic() - t_start, sum(per_pid.values())))
+            for pid in pids:
+                if pid in cpu_first:
+                    rss_by_service.setdefault(cpu_first[pid][0], []).append(per_pid[pid])
+                cpu = cpu_seconds(pid)
+                if cpu is None:
+                    continue
+                if pid not in cpu_first:
+                    cpu_first[pid] = (service_name(pid), cpu)
+                cpu_last[pid] = cpu
+            n = len(pose_seen)
             print(f"\r[pipeline] {time.monotonic() - t_start:5.0f} s  frames {frames_total[0]}  poses {n}  "
                   f"rss {rss_samples[-1][1]:.0f} MB", end="", file=sys.stderr, flush=True)
             time.sleep(0.5)
             if time.monotonic() - t_start > args.seconds + 90:
                 sup.send_signal(signal.SIGTERM)
         print(file=sys.stderr)
+        run_s = time.monotonic() - t_start
     sup_out = sup.communicate()[0]
     (out / "supervisor.txt").write_text(sup_out)
+
+    with lock:
+        latencies = [1000 * (t - frame_seen[seq]) for seq, t in pose_seen.items() if seq in frame_seen]
+        stages = stage_breakdown(frame_seen, traces, pose_seen)
+    cpu_percent: dict[str, float] = {}
+    for pid, (name, first) in cpu_first.items():
+        cpu_percent[name] = cpu_percent.get(name, 0.0) + 100 * (cpu_last[pid] - first) / run_s
+    ate = None
+    if slam_poses and truth_poses:
+        try:
+            es, ep = zip(*sorted(slam_poses, key=lambda x: x[0]))
+            gs, gp = zip(*sorted(truth_poses, key=lambda x: x[0]))
+            ate = round(evaluate(np.array(es), np.array(ep), np.array(gs), np.array(gp),
+                                 tolerance_ns=int(0.5e9 / args.fps)).ate_rmse_m, 3)
+        except TrajectoryMismatch as e:
+            print(f"[pipeline] no ATE: {e}", file=sys.stderr)
+    settle_generations = [t["generations"] for t in traces.values()]
+    # Mean fitness of each published population, in frame order: a publication rule that publishes too
+    # early would show as a quality that sinks over the run.
+    quality = np.array([traces[k].get("quality", np.nan) for k in sorted(traces)], float)
+    thirds = np.array_split(quality, 3) if quality.size >= 3 else []
 
     lat = np.array(latencies)
     evo = heartbeats.get("evolver")
@@ -188,11 +342,22 @@ def main(argv=None) -> int:
         "peak_rss_mb": round(float(rss[:, 1].max()), 1) if len(rss) else None,
         "rss_growth_mb": round(float(np.median(rss[half:, 1]) - np.median(rss[:half, 1])), 1) if half > 2 else None,
         "frames_published": frames, "frames_evolved": evolved, "poses": int(lat.size),
+        "posed_fraction": round(lat.size / frames, 3) if frames else None,
+        "ate_rmse_m": ate,
+        "settle_generations_p50": float(np.median(settle_generations)) if settle_generations else None,
+        "published_quality_by_third": [round(float(np.nanmean(t)), 4) for t in thirds],
+        "stages_ms": {k: percentiles(v) for k, v in stages.items()},
+        "cpu_percent": {k: round(v, 1) for k, v in sorted(cpu_percent.items())},
+        "rss_growth_by_service_mb": {k: round(float(np.median(v[len(v) // 2:]) - np.median(v[:len(v) // 2])), 1)
+                                     for k, v in sorted(rss_by_service.items()) if len(v) > 6},
+        "settle_ms": args.settle_ms, "recovery": args.recovery, "duty": args.duty, "image_hz": args.image_hz,
+        "niced": not args.no_nice,
         "fps": args.fps, "resolution": "640x480", "cores": os.cpu_count(),
         "loadavg_1min": round(os.getloadavg()[0], 2),
     }
+    print(format_breakdown(stages, cpu_percent), file=sys.stderr)
     print(f"frames published {frames}, evolved {evolved} ({100 * (result['frames_skipped_fraction'] or 0):.0f} % skipped), "
-          f"poses {lat.size}")
+          f"poses {lat.size}, ATE {ate} m")
     print(f"pose latency p50 {result['pose_latency_p50_ms']} ms, p99 {result['pose_latency_p99_ms']} ms "
           f"(frame published -> pose published for that frame)")
     print(f"evolver {result['evolver_generations_per_s']} generations/s; services' memory peak {result['peak_rss_mb']} MB, "
