@@ -306,6 +306,7 @@ def main(argv=None) -> int:
         run_s = time.monotonic() - t_start
     sup_out = sup.communicate()[0]
     (out / "supervisor.txt").write_text(sup_out)
+    (out / "rss_by_service.json").write_text(json.dumps(rss_by_service))   # 2 samples/s, for a closer look
 
     with lock:
         latencies = [1000 * (t - frame_seen[seq]) for seq, t in pose_seen.items() if seq in frame_seen]
