@@ -6,13 +6,17 @@ a small object (a cluster of flies covering ~3 x 3 cells, ~25 x 25 cells once in
 spot of the converged map and re-solves from the previous solution to the same tolerance.
 ``usable_gradient_fraction`` is the share of free cells connected to the target from which discrete
 steepest descent of the field reaches the target; ``plain_*`` is the same for the textbook potential u
-relaxed (SOR, converged) in float64 / float32.  numba compile time is excluded (warm-up run first).
+relaxed (SOR, converged) in float64 / float32.  ``warm_update_max_log_phi_error`` is the largest
+|log phi| difference, after the first warm update, from the same map solved to a 1e-10 relative residual
+(how accurate "converged" is).  numba compile time is excluded (warm-up run first).
 
 Usage: python bench/planner.py [--json] [--sizes 100 200 400] [--warm-trials 5]
 """
 from __future__ import annotations
 
 import argparse
+import copy
+import dataclasses
 import json
 import sys
 import time
@@ -52,7 +56,8 @@ def serpentine_flies(n_cells: int, rng: np.random.Generator) -> np.ndarray:
 def make_planner(n_cells: int, seed: int = 0) -> tuple[HarmonicPlanner, np.ndarray]:
     rng = np.random.default_rng(seed)
     size = n_cells * RES
-    pl = HarmonicPlanner(PlannerConfig(resolution=RES, size_m=(size, size), origin=(0.0, 0.0)))
+    pl = HarmonicPlanner(PlannerConfig(resolution=RES, size_m=(size, size), origin=(0.0, 0.0),
+                                       max_cycles=1000))
     flies = serpentine_flies(n_cells, rng)
     pl.update_flies(flies, np.ones(len(flies)), 0)
     pl.set_target(0.5, 0.5, 0.25)
@@ -82,10 +87,10 @@ def bench_size(n: int, warm_trials: int) -> dict:
     psi = padded_psi(pl)
     usable = hk.usable_fraction(psi, pl._state)
     far = float(-psi[pl._state == hk.ACTIVE].min())
-    log(f"{n}x{n}: cold solve {full_ms:.0f} ms ({rep.sweeps} sweeps, converged={rep.converged}), "
+    log(f"{n}x{n}: cold solve {full_ms:.0f} ms ({rep.cycles} cycles, converged={rep.converged}), "
         f"{rep.active_cells} active cells, usable {usable:.4f}, min log phi {-far:.0f}")
     rng = np.random.default_rng(1)
-    warm_ms, warm_sweeps, budget_usable = [], [], []
+    warm_ms, warm_sweeps, budget_usable, warm_err = [], [], [], []
     stamp = 1
     for _ in range(warm_trials):
         obj = small_object(pl, rng)
@@ -102,9 +107,17 @@ def bench_size(n: int, warm_trials: int) -> dict:
         t = time.perf_counter()
         rep = pl.solve()
         warm_ms.append((time.perf_counter() - t) * 1e3)
-        warm_sweeps.append(rep.sweeps)
+        warm_sweeps.append(rep.cycles)
+        if not warm_err:
+            ref = copy.deepcopy(pl)
+            ref.cfg = dataclasses.replace(pl.cfg, tolerance=1e-10)
+            ref._converged = False
+            ref.solve()
+            fin = np.isfinite(ref.log_phi)
+            warm_err.append(float(np.abs(ref.log_phi[fin] - pl.log_phi[fin]).max()))
     usable_after = hk.usable_fraction(padded_psi(pl), pl._state)
-    log(f"{n}x{n}: warm update {np.median(warm_ms):.1f} ms median ({warm_ms}), sweeps {warm_sweeps}, "
+    log(f"{n}x{n}: warm update {np.median(warm_ms):.1f} ms median ({warm_ms}), cycles {warm_sweeps}, "
+        f"max |log phi error| {warm_err[0]:.2g}, "
         f"usable after 10 ms budget {budget_usable}, after convergence {usable_after:.4f}")
     plain = {}
     for name, dtype, tol, cap in (("float64", np.float64, 1e-13, 50000), ("float32", np.float32, 1e-6, 5000)):
@@ -113,7 +126,7 @@ def bench_size(n: int, warm_trials: int) -> dict:
         plain[name] = hk.usable_fraction(-u.astype(np.float64), pl._state)
         log(f"{n}x{n}: plain {name} relaxation usable {plain[name]:.4f} ({(time.perf_counter() - t) * 1e3:.0f} ms)")
     return dict(full_ms=full_ms, warm_ms=float(np.median(warm_ms)), warm_ms_max=float(np.max(warm_ms)),
-                warm_sweeps=float(np.median(warm_sweeps)), budget_usable=float(np.min(budget_usable)),
+                warm_sweeps=float(np.median(warm_sweeps)), warm_err=warm_err[0], budget_usable=float(np.min(budget_usable)),
                 usable=min(usable, usable_after), plain=plain, min_log_phi=-far,
                 active=int(rep.active_cells))
 
@@ -130,7 +143,8 @@ def main() -> None:
     hk.usable_fraction(padded_psi(pl), pl._state)
     hk.plain_potential(pl._state, np.float64, max_sweeps=2)
     hk.plain_potential(pl._state, np.float32, max_sweeps=2)
-    out = {k: {} for k in ("full_solve_ms", "warm_update_ms", "warm_update_ms_max", "warm_update_sweeps",
+    out = {k: {} for k in ("full_solve_ms", "warm_update_ms", "warm_update_ms_max", "warm_update_cycles",
+                           "warm_update_max_log_phi_error",
                            "usable_gradient_fraction", "usable_after_10ms_warm_budget",
                            "plain_float64_usable_gradient_fraction", "plain_float32_usable_gradient_fraction",
                            "min_log_phi", "active_cells")}
@@ -140,7 +154,8 @@ def main() -> None:
         out["full_solve_ms"][key] = round(r["full_ms"], 2)
         out["warm_update_ms"][key] = round(r["warm_ms"], 2)
         out["warm_update_ms_max"][key] = round(r["warm_ms_max"], 2)
-        out["warm_update_sweeps"][key] = r["warm_sweeps"]
+        out["warm_update_cycles"][key] = r["warm_sweeps"]
+        out["warm_update_max_log_phi_error"][key] = float(f"{r['warm_err']:.3g}")
         out["usable_gradient_fraction"][key] = round(r["usable"], 5)
         out["usable_after_10ms_warm_budget"][key] = round(r["budget_usable"], 5)
         out["plain_float64_usable_gradient_fraction"][key] = round(r["plain"]["float64"], 5)

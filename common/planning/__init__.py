@@ -1,5 +1,5 @@
 """Harmonic-function planner: occupancy from the fly population and sonar, a log-space harmonic field kept
-up to date by warm-started relaxation, and a differential-drive command down its gradient.
+up to date by warm-started multigrid, and a differential-drive command down its gradient.
 
 API (what the planner service calls)::
 
@@ -11,7 +11,7 @@ API (what the planner service calls)::
                                                        # view=SensorView(x, y, yaw, half_fov_rad, range_m, near_m):
                                                        # evidence is forgotten fast only inside the camera's view
     pl.update_sonar(points_xy, stamp_ns, view=None)    # (M, 2) map-frame echo points (M may be 0)
-    rep = pl.solve(max_ms=None, max_sweeps=None)       # SolveReport(sweeps, converged, ..., status)
+    rep = pl.solve(max_ms=None, max_cycles=None)       # SolveReport(cycles, converged, ..., status)
     cmd = pl.command((x, y, yaw))                      # Command(v, omega, stop, reason)
     pl.field          # (H, W) -log(1 - u): 0 on the target, +inf on obstacles / unreachable cells
     pl.log_phi        # (H, W) log(1 - u) (= -field)
@@ -24,7 +24,7 @@ Stop reasons: 'target reached', 'no path', 'no target', 'target blocked', 'targe
 Bad input raises ``PlannerInputError`` (a ValueError).
 
 Modules: ``config`` (PlannerConfig, Command, SolveReport), ``occupancy`` (evidence grid), ``harmonic``
-(numba kernels), ``aggregation`` (block correction), ``controller`` (heading -> (v, omega)),
+(grid kernels), ``multigrid`` (the log-space solver), ``controller`` (heading -> (v, omega)),
 ``planner`` (HarmonicPlanner), ``closed_loop`` (kinematic harness), ``scenarios`` (seeded worlds).
 """
 from .config import SensorView, Command, PlannerConfig, PlannerInputError, SolveReport

@@ -4,7 +4,7 @@ optional sonar ring, and the HarmonicPlanner in the loop at a fixed rate.
 The world is an (M, 2, 2) array of wall segments (map x, y).  Each planner cycle the camera casts rays
 over its horizontal field of view; every visible wall point becomes a few "flies" at random heights with
 Gaussian noise, plus a share of outliers scattered through the view cone, and the sonar ring reports its
-echoes.  The planner folds them in, solves (warm, with a sweep budget so runs are reproducible) and
+echoes.  The planner folds them in, solves (warm, with a cycle budget so runs are reproducible) and
 commands (v, omega), which the robot integrates in sub-steps while collisions are checked.
 """
 from __future__ import annotations
@@ -104,7 +104,7 @@ def perceive_sonar(pose, segments: np.ndarray, pc: PerceptionConfig, rng: np.ran
 
 def run_closed_loop(segments, start, target, bounds, *, config: PlannerConfig | None = None,
                     perception: PerceptionConfig | None = None, rate_hz: float = 10.0,
-                    substeps: int = 5, timeout_s: float = 90.0, sweeps_per_cycle: int = 30,
+                    substeps: int = 5, timeout_s: float = 90.0, solver_cycles: int = 8,
                     seed: int = 0) -> LoopResult:
     """Drive from ``start`` (x, y, yaw) to ``target`` (x, y, radius) among ``segments`` (M, 2, 2).
 
@@ -136,7 +136,7 @@ def run_closed_loop(segments, start, target, bounds, *, config: PlannerConfig | 
         sonar = perceive_sonar(pose, segs, pc, rng)
         if len(sonar):
             pl.update_sonar(sonar, stamp)
-        rep = pl.solve(max_sweeps=sweeps_per_cycle)
+        rep = pl.solve(max_cycles=solver_cycles)
         solve_ms.append(rep.elapsed_ms)
         cmd = pl.command(pose)
         if cmd.stop:

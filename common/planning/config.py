@@ -42,15 +42,14 @@ class PlannerConfig:
     # seconds opened gaps the field then led the robot through (measured on a recorded corridor run).
     unseen_half_life_s: float = 60.0
     sonar_weight: float = 2.0
-    # Relaxation.
-    sor_omega: float = 1.9
-    sor_omega_near_walls: float = 1.5    # within near_wall_cells of an obstacle (see relaxation_factors)
-    near_wall_cells: float = 2.0
-    tolerance: float = 1e-4              # largest relative change of phi per sweep counted as converged
-    sweeps_per_check: int = 4
-    coarse_block: int = 4                # block size of the correction applied after a map change; <=1: off
-    blend_sweeps: int = 2                # Gauss-Seidel sweeps after that correction
-    max_sweeps: int = 20000
+    # Solver (multigrid.py).
+    tolerance: float = 1e-4              # largest relative change of phi made by one multigrid cycle
+                                         # counted as converged
+    mg_over_correction: float = 2.0      # exponent of the fine level's coarse factor (see multigrid.py)
+    mg_smoothing_sweeps: int = 1         # Gauss-Seidel sweeps before and after each coarse correction
+    mg_krylov_levels: int = 99           # coarse levels 1..k use K-cycles (two cycles + residual minimisation)
+    mg_coarsest: int = 48                # unknowns at which the hierarchy stops (solved directly)
+    max_cycles: int = 200
     # Controller.
     v_max: float = 0.5
     omega_max: float = 1.5
@@ -73,16 +72,16 @@ class PlannerConfig:
                                     f"got {self.size_m!r}")
         if len(self.origin) != 2 or not all(math.isfinite(o) for o in self.origin):
             raise PlannerInputError(f"PlannerConfig.origin must be a finite (x, y), got {self.origin!r}")
-        for name in ("sor_omega", "sor_omega_near_walls"):
-            if not 0.0 < getattr(self, name) < 2.0:
-                raise PlannerInputError(f"PlannerConfig.{name} must be in (0, 2), got {getattr(self, name)}")
+        if not (isinstance(self.mg_over_correction, (int, float)) and 1.0 <= self.mg_over_correction <= 2.5):
+            raise PlannerInputError(f"PlannerConfig.mg_over_correction must be in [1, 2.5], "
+                                    f"got {self.mg_over_correction!r}")
         if self.evidence_cap < self.occupied_weight:
             raise PlannerInputError("PlannerConfig.evidence_cap must be >= occupied_weight")
         if self.fly_z_max <= self.fly_z_min:
             raise PlannerInputError("PlannerConfig.fly_z_max must be above fly_z_min")
-        if self.safety_margin < 0 or self.sweeps_per_check < 1 or self.max_sweeps < 1:
-            raise PlannerInputError("PlannerConfig: safety_margin >= 0, sweeps_per_check >= 1, "
-                                    "max_sweeps >= 1 required")
+        if self.safety_margin < 0 or self.mg_smoothing_sweeps < 1 or self.max_cycles < 1 or self.mg_coarsest < 1:
+            raise PlannerInputError("PlannerConfig: safety_margin >= 0, mg_smoothing_sweeps >= 1, "
+                                    "mg_coarsest >= 1 and max_cycles >= 1 required")
 
     @property
     def inflation_m(self) -> float:
@@ -132,7 +131,9 @@ class Command:
 
 @dataclass(frozen=True)
 class SolveReport:
-    sweeps: int
+    """What one ``HarmonicPlanner.solve`` call did: multigrid cycles run, whether the last cycle's largest
+    relative change of phi is below the tolerance, that change, wall time, ACTIVE cells, status."""
+    cycles: int
     converged: bool
     max_rel_change: float
     elapsed_ms: float

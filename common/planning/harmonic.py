@@ -1,24 +1,22 @@
-"""Harmonic-function kernels on a 2-D grid, solved in log space so the gradient never underflows.
+"""Harmonic-function kernels on a 2-D grid for a field solved in log space, so its gradient never underflows.
 
 The classic harmonic planner solves Laplace's equation for a potential ``u`` that is 1 on obstacles and
 0 on the target, and steers down ``-grad u``.  Far from the target ``u`` is ``1 - tiny``: in a corridor of
 width ``w`` cells ``1 - u`` falls like ``exp(-pi d / w)``, so after a dozen corridor widths it is below
 float64's epsilon, ``u`` rounds to exactly 1 and the gradient is exactly zero.
 
-Here the unknown is the complementary potential ``phi = 1 - u`` (1 on the target, 0 on obstacles and the
-border), stored as ``phi = exp(s) * r``: ``s`` is a per-cell log scale and ``r`` a relative factor near 1.
-Laplace's equation ``phi_i = mean(phi_neighbours)`` becomes the *linear* system
-``r_i = sum_n w_in r_n`` with ``w_in = exp(s_n - s_i) / 4`` — the same iteration as SOR on ``phi`` (a
-diagonal similarity transform) but without a floor on how small ``phi`` may get, and with only
-multiply-adds in the sweeps: the exponentials are paid once per re-basing (``s += log r``), not per sweep.
-The field handed out is ``psi = log phi = s + log r`` (finite wherever the target is reachable, ``-inf``
-elsewhere); steering is its steepest ascent, i.e. the steepest descent of ``u``.
+The planner therefore solves for the complementary potential ``phi = 1 - u`` (1 on the target, 0 on
+obstacles and the border) stored as ``phi = exp(s) * r`` — ``s`` a per-cell log scale, ``r`` a relative
+factor near 1 — with the multigrid of multigrid.py.  The field handed out is ``psi = log phi``
+(finite wherever the target is reachable, ``-inf`` elsewhere); steering is its steepest ascent, i.e.
+the steepest descent of ``u``.  This module holds the grid kernels around that solve: connectivity,
+warm-start guesses, discrete steepest ascent and the usable-gradient measure, and the textbook
+relaxation kept as the baseline that shows the underflow.
 
 Grids are padded by one cell whose state is BLOCKED, so kernels need no bounds checks.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from numba import njit
 
@@ -63,78 +61,6 @@ def flood_from_target(passable, target):
                 qx[tail] = nx
                 tail += 1
     return dist
-
-
-@njit(cache=True)
-def scaled_weights(s, state, cells):
-    """Neighbour weights ``exp(s_n - s_i) / 4`` of the ACTIVE cells ``cells`` (flat indices), 0 towards
-    BLOCKED neighbours.  Returns (len(cells), 4) float64 in the order +x, -x, +y, -y."""
-    w = s.shape[1]
-    sf = s.ravel()
-    stf = state.ravel()
-    n = cells.size
-    wt = np.zeros((n, 4), dtype=np.float64)
-    for k in range(n):
-        i = cells[k]
-        si = sf[i]
-        if stf[i + 1] != BLOCKED:
-            wt[k, 0] = 0.25 * np.exp(sf[i + 1] - si)
-        if stf[i - 1] != BLOCKED:
-            wt[k, 1] = 0.25 * np.exp(sf[i - 1] - si)
-        if stf[i + w] != BLOCKED:
-            wt[k, 2] = 0.25 * np.exp(sf[i + w] - si)
-        if stf[i - w] != BLOCKED:
-            wt[k, 3] = 0.25 * np.exp(sf[i - w] - si)
-    return wt
-
-
-@njit(cache=True, inline="always")
-def _relax(rf, wt, k, i, w, omega):
-    old = rf[i]
-    acc = wt[k, 0] * rf[i + 1] + wt[k, 1] * rf[i - 1] + wt[k, 2] * rf[i + w] + wt[k, 3] * rf[i - w]
-    new = old + omega * (acc - old)
-    # Over-relaxation far from convergence could overshoot below zero; phi > 0 on every connected cell,
-    # so clamp (the fixed point never touches the clamp).
-    if new < 0.05 * old:
-        new = 0.05 * old
-    rf[i] = new
-    return old, new
-
-
-@njit(cache=True)
-def scaled_ssor(r, wt, cells, omega, n_sweeps):
-    """``n_sweeps`` symmetric SOR sweeps (forward then backward) of ``r_i = sum w_in r_n`` in place over
-    the ACTIVE cells ``cells`` (flat indices, ascending; ``wt`` from ``scaled_weights``) with per-cell
-    relaxation factors ``omega`` (see ``relaxation_factors``).  Returns the largest relative change of
-    any cell in the last sweep."""
-    w = r.shape[1]
-    rf = r.ravel()
-    n = cells.size
-    for _ in range(n_sweeps - 1):
-        for k in range(n):
-            _relax(rf, wt, k, cells[k], w, omega[k])
-        for k in range(n - 1, -1, -1):
-            _relax(rf, wt, k, cells[k], w, omega[k])
-    worst = 0.0
-    for k in range(n):
-        old, new = _relax(rf, wt, k, cells[k], w, omega[k])
-        worst = max(worst, abs(new - old) / new)
-    for k in range(n - 1, -1, -1):
-        old, new = _relax(rf, wt, k, cells[k], w, omega[k])
-        worst = max(worst, abs(new - old) / new)
-    return worst
-
-
-def relaxation_factors(state: np.ndarray, cells: np.ndarray, omega_open: float, omega_near: float,
-                       near_cells: float) -> np.ndarray:
-    """Per-cell SOR factor: ``omega_near`` within ``near_cells`` of a BLOCKED cell, ``omega_open`` elsewhere.
-
-    One factor tuned for open space (~1.9) makes SOR ring for hundreds of sweeps in narrow channels and
-    along walls, where the field falls steeply and the optimum is much lower; on the benchmark maps a
-    1.5 band two cells wide halves to thirds the sweeps to convergence (same fixed point)."""
-    free = np.ascontiguousarray((state != BLOCKED).astype(np.uint8))
-    d = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).ravel()[cells]
-    return np.where(d <= near_cells, omega_near, omega_open).astype(np.float64)
 
 
 @njit(cache=True)

@@ -7,7 +7,7 @@ Usage (the planner service)::
     pl.set_target(x, y, radius)
     pl.update_flies(points_map, fitness, stamp_ns, view=None)  # (N, 3) map frame, (N,), SensorView
     pl.update_sonar(points_xy, stamp_ns, view=None)   # (M, 2) map frame
-    pl.solve(max_ms=20)                               # warm-started relaxation, returns a SolveReport
+    pl.solve(max_ms=20)                               # warm-started multigrid, returns a SolveReport
     cmd = pl.command((x, y, yaw))                     # Command(v, omega, stop, reason)
     pl.field, pl.grid_origin, pl.resolution, pl.path_from(x, y)
 
@@ -23,8 +23,8 @@ import numpy as np
 
 from . import harmonic as hk
 from .config import SensorView, Command, PlannerConfig, PlannerInputError, SolveReport
-from .aggregation import block_factors
 from .controller import heading_command
+from .multigrid import LogFieldSolver
 from .occupancy import EvidenceGrid
 
 
@@ -40,6 +40,8 @@ class HarmonicPlanner:
         self._s = np.zeros((h + 2, w + 2))
         self._r = np.zeros((h + 2, w + 2))
         self._solved_key: tuple | None = None
+        self._solver: LogFieldSolver | None = None
+        self._converged = False
         self._has_solution = False
         self._status = "no target"
         self._clearance = np.full((h, w), np.float32(1e6))
@@ -143,60 +145,54 @@ class HarmonicPlanner:
         hk.extend_scale(s, known, new_state, 0.3)
         self._r = np.where(new_state != hk.BLOCKED, 1.0, 0.0)
         self._state = new_state
-        self._cells = np.flatnonzero(active.ravel())
-        self._weights = hk.scaled_weights(self._s, self._state, self._cells)
-        self._omega = hk.relaxation_factors(self._state, self._cells, self.cfg.sor_omega,
-                                            self.cfg.sor_omega_near_walls, self.cfg.near_wall_cells)
-        if self.cfg.coarse_block > 1 and self._cells.size >= 8 * self.cfg.coarse_block ** 2:
-            # One multiplicative block correction (aggregation.py): moves whole regions by the factor a
-            # change of the map implies (SOR alone would need hundreds of sweeps to carry it across the
-            # map), then Gauss-Seidel sweeps (no over-relaxation) to blend the block edges.
-            agg, logq = block_factors(self._cells, self._weights, self._s, new_state, self.cfg.coarse_block)
-            self._s.ravel()[self._cells] += logq[agg]
-            self._weights = hk.scaled_weights(self._s, self._state, self._cells)
-            hk.scaled_ssor(self._r, self._weights, self._cells, np.ones(self._cells.size), self.cfg.blend_sweeps)
+        # The system of the new map around the warm start, with its multigrid hierarchy (multigrid.py).
+        self._solver = LogFieldSolver(new_state, s, self.cfg.mg_coarsest)
+        self._converged = False
         self._status = "ok"
         self._has_solution = True
 
-    def _rebase(self) -> None:
-        act = self._state == hk.ACTIVE
-        self._s[act] += np.log(self._r[act])
-        self._r[act] = 1.0
-        self._weights = hk.scaled_weights(self._s, self._state, self._cells)
+    def _store_solution(self) -> None:
+        """Fold the solver's factors into its log scale and copy log phi to the padded grid (r = 1)."""
+        sv = self._solver
+        sv.rebase()
+        self._s.ravel()[sv.cells] = sv.s
+        self._r.ravel()[sv.cells] = 1.0
 
-    def solve(self, max_ms: float | None = None, max_sweeps: int | None = None) -> SolveReport:
-        """Bring the field up to date: rebuild obstacles if the evidence or target changed, then relax
-        (symmetric SOR in the scaled log domain) from the previous solution until the largest relative
-        change per sweep is below ``tolerance``, ``max_sweeps`` ran, or ``max_ms`` elapsed (checked every
-        ``sweeps_per_check`` sweeps; the next call continues where this one stopped).  ``max_sweeps``
-        overrides the configured cap for this call (a reproducible budget, unlike ``max_ms``)."""
+    def solve(self, max_ms: float | None = None, max_cycles: int | None = None) -> SolveReport:
+        """Bring the field up to date: rebuild obstacles if the evidence or target changed, then run
+        multigrid cycles (multigrid.py) from the previous solution until the largest relative change of
+        phi made by one cycle is below ``tolerance``, ``max_cycles`` ran, or ``max_ms`` elapsed (checked
+        after every cycle; the next call continues where this one stopped).  ``max_cycles`` overrides
+        the configured cap for this call (a reproducible budget, unlike ``max_ms``).  A converged field
+        whose map has not changed costs nothing."""
         t0 = time.perf_counter()
         if self._target is None:
             self._status = "no target"
             self._has_solution = False
             return SolveReport(0, False, float("nan"), 0.0, 0, "no target")
         key = (self.grid.version, self._target_version)
-        if key != self._solved_key:
+        if key != self._solved_key or self._solver is None:
             self._rebuild_state()
             self._solved_key = key
         if self._status != "ok":
             return SolveReport(0, False, float("nan"), (time.perf_counter() - t0) * 1e3, 0, self._status)
-        sweeps, change = 0, float("inf")
         cfg = self.cfg
-        cap = cfg.max_sweeps if max_sweeps is None else int(max_sweeps)
-        while sweeps < cap:
-            n = min(cfg.sweeps_per_check, cap - sweeps)
-            change = hk.scaled_ssor(self._r, self._weights, self._cells, self._omega, n)
-            sweeps += n
-            if change < cfg.tolerance:
-                break
+        sv = self._solver
+        cap = cfg.max_cycles if max_cycles is None else int(max_cycles)
+        cycles = 0
+        change = 0.0 if self._converged else float("inf")
+        while change >= cfg.tolerance and cycles < cap:
+            change = sv.cycle(cfg.mg_over_correction, cfg.mg_smoothing_sweeps, cfg.mg_krylov_levels)
+            cycles += 1
             if max_ms is not None and (time.perf_counter() - t0) * 1e3 >= max_ms:
                 break
-            if np.abs(np.log(self._r.ravel()[self._cells])).max(initial=0.0) > 30.0:
-                self._rebase()          # keep r near 1 so exp(s) r never leaves float64's range
-        self._rebase()
-        return SolveReport(sweeps, change < cfg.tolerance, float(change), (time.perf_counter() - t0) * 1e3,
-                           int(self._cells.size), "ok")
+            if sv.drift() > 30.0:
+                sv.rebase()             # keep x near 1 so exp(s) x never leaves float64's range
+        if cycles:
+            self._store_solution()
+        self._converged = change < cfg.tolerance
+        return SolveReport(cycles, self._converged, float(change), (time.perf_counter() - t0) * 1e3,
+                           sv.size, "ok")
 
     # -- outputs -------------------------------------------------------------------------------------
     @property
