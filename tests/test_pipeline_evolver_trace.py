@@ -1,0 +1,46 @@
+"""The evolver service publishes each new frame's population early and says where the time went (--trace)."""
+from __future__ import annotations
+
+import time
+
+import msgpack
+import numpy as np
+
+from common import messages as m
+from common.bus import BusOptions, Node
+from common.camera import StereoCalibration
+from common.images import make_frame
+from tests.helpers import hub, start_module, stop, wait_until
+
+
+def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_path, zenoh_port):
+    proc = start_module("services.evolver", "--population", "400", "--settle-ms", "30", "--trace",
+                        port=zenoh_port, log_path=tmp_path / "evolver.log")
+    try:
+        with Node("tester", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+            heartbeats, populations, traces = [], [], []
+            node.subscribe("status/evolver", m.Heartbeat, heartbeats.append)
+            node.subscribe("flies/population", m.FlyPopulation, populations.append)
+            node.subscribe("trace/evolver", None, lambda key, payload: traces.append(msgpack.unpackb(payload)),
+                           raw=True)
+            assert wait_until(lambda: heartbeats, 30), "evolver did not come up"
+            calib = StereoCalibration.ideal(96, 72)
+            node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
+            frames = node.publisher("stereo/frame", reliable=True)
+            rng = np.random.default_rng(0)
+            img = rng.integers(0, 255, (72, 96, 3), dtype=np.uint8)
+            for seq in range(1, 6):
+                frames.publish(make_frame(img, np.roll(img, -4, axis=1), seq, time.time_ns()))
+                assert wait_until(lambda: any(t["seq"] == seq for t in traces), 30), f"no trace for frame {seq}"
+            by_seq = {t["seq"]: t for t in traces}
+            for seq, t in by_seq.items():
+                assert t["take"] <= t["decoded"] <= t["ready"] <= t["published"], t
+                assert t["generations"] >= 1
+                # A generation of 400 flies takes well under a millisecond: the 30 ms budget bounds the
+                # settle, give or take the last generation and a loaded machine's scheduling.
+                assert (t["published"] - t["ready"]) * 1e-9 < 0.5, t
+                assert any(p.source_seq == seq for p in populations), f"no population published for frame {seq}"
+            assert by_seq[1]["reference"] is None            # first frame: nothing to recover to
+            assert all(by_seq[s]["reference"] is not None for s in range(2, 6))
+    finally:
+        assert stop(proc) == 0, (tmp_path / "evolver.log").read_text()[-3000:]
