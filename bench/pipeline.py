@@ -226,7 +226,7 @@ def main(argv=None) -> int:
     hub = f"tcp/127.0.0.1:{port}"
     launch = out / "launch.toml"
     nice = {"nice_recorder": 0, "nice_bridge": 0, "nice_planner": 0} if args.no_nice else \
-        {"nice_recorder": 10, "nice_bridge": 15, "nice_planner": 5}
+        {"nice_recorder": 10, "nice_bridge": 10, "nice_planner": 5}
     launch.write_text(LAUNCH.format(duration=args.seconds + 30, settle=args.settle_ms, recording=recording,
                                     recovery=args.recovery, duty=args.duty, image_hz=args.image_hz, **nice))
 

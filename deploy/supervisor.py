@@ -18,8 +18,10 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
     ends_run = false                # when it exits 0, the whole run stops (e.g. a replay that finished)
     liveliness_timeout_s = 20       # alive process without a liveliness token this long = hung, restarted
     stop_timeout_s = 10             # SIGTERM, then SIGKILL after this long
-    nice = 0                        # raise the process's niceness (0-19): services off the critical
-                                    # path (viewer bridge, recorder) yield the CPU to those on it
+    nice = 0                        # raise the process's niceness (0-19) once it is up (liveliness
+                                    # token seen; it starts at full priority so that a loaded machine
+                                    # cannot starve its start-up past liveliness_timeout_s): services
+                                    # off the critical path (viewer bridge, recorder) yield the CPU
 
 ``{out}``, ``{root}`` and ``{recordings}`` are substituted in args, and so are the launch file's own
 ``[vars]`` (defaults) as overridden by ``--var NAME=VALUE`` on the command line. Services stop in the reverse of start
@@ -142,13 +144,24 @@ def _die_with_parent():
     os.setpgrp()  # own process group: a terminal's Ctrl-C reaches the supervisor, which stops us in order
 
 
-def _child_setup(nice: int):
-    """The child's pre-exec function: die with the parent, then lower its priority by ``nice``."""
-    def setup():
-        _die_with_parent()
-        if nice:
-            os.nice(nice)
-    return setup
+def renice(pid: int, nice: int) -> int:
+    """Set the niceness of every thread of process ``pid`` (Linux niceness is per thread, and threads
+    created later inherit their creator's); returns how many threads were changed. Lowering the priority
+    of one's own children needs no privilege."""
+    changed = 0
+    for _ in range(2):   # a thread started while the first pass ran is caught by the second
+        try:
+            tids = [int(t.name) for t in (Path("/proc") / str(pid) / "task").iterdir()]
+        except OSError:
+            return changed
+        for tid in tids:
+            try:
+                if os.getpriority(os.PRIO_PROCESS, tid) != nice:
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
+                    changed += 1
+            except OSError:   # the thread ended meanwhile
+                pass
+    return changed
 
 
 @dataclass
@@ -165,14 +178,22 @@ class Child:
     alive_token: bool = False
     token_lost_at: float | None = None
     last_heartbeat: dict = field(default_factory=dict)
+    reniced: bool = False
 
     def start(self, env: dict) -> None:
         with open(self.log_path, "ab") as logf:
             logf.write(f"\n=== start #{self.restarts + 1} at {time.strftime('%H:%M:%S')}: {' '.join(self.argv)}\n".encode())
             self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT, env=env,
-                                         preexec_fn=_child_setup(self.spec.nice), cwd=ROOT)
+                                         preexec_fn=_die_with_parent, cwd=ROOT)
         self.state, self.started_at = "running", time.monotonic()
         self.token_lost_at = None
+        self.reniced = False
+
+    def renice_when_up(self) -> None:
+        """Apply the spec's niceness once the service is up (called when its liveliness token appears)."""
+        if self.spec.nice and not self.reniced and self.proc is not None and self.proc.poll() is None:
+            renice(self.proc.pid, self.spec.nice)
+            self.reniced = True
 
     def terminate(self, timeout: float) -> int | None:
         if self.proc is None or self.proc.poll() is not None:
@@ -225,6 +246,8 @@ class Supervisor:
                     alive = sample.kind == zenoh.SampleKind.PUT
                     c.alive_token = alive
                     c.token_lost_at = None if alive else time.monotonic()
+                    if alive:
+                        c.renice_when_up()
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         try:

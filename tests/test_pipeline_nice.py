@@ -1,28 +1,68 @@
 """Launch files can lower a service's priority (``nice``) so it yields the CPU to the pose pipeline."""
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from deploy.supervisor import Child, LaunchError, ServiceSpec, load_launch
+from deploy.supervisor import LaunchError, load_launch, renice
+from tests.helpers import ROOT, hub, wait_until, write_source_recording
+from tests.test_supervisor import children_of, cmdline
 
 
-def niceness(pid: int) -> int:
-    return int((Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[16])
+def niceness(tid: int) -> int:
+    return int((Path("/proc") / str(tid) / "stat").read_text().rsplit(")", 1)[1].split()[16])
 
 
-def test_a_niced_service_runs_at_lower_priority(tmp_path):
-    child = Child(ServiceSpec(name="sleeper", module="-", nice=7),
-                  [sys.executable, "-c", "import time; time.sleep(30)"], tmp_path / "sleeper.log")
-    child.start({})
+def thread_niceness(pid: int) -> list[int]:
+    return [niceness(int(t.name)) for t in (Path("/proc") / str(pid) / "task").iterdir()]
+
+
+THREADED_CHILD = """
+import threading, time
+for _ in range(3):
+    threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
+time.sleep(30)
+"""
+
+
+def test_renice_lowers_every_thread_of_a_running_service(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-c", THREADED_CHILD])
     try:
-        time.sleep(0.2)
-        assert niceness(child.proc.pid) == 7
+        assert wait_until(lambda: len(thread_niceness(proc.pid)) == 4, 10)
+        assert renice(proc.pid, 7) == 4
+        assert thread_niceness(proc.pid) == [7, 7, 7, 7]
     finally:
-        child.terminate(5)
+        proc.kill()
+        proc.wait()
+
+
+def test_supervisor_nices_a_service_once_it_is_up(tmp_path, zenoh_port):
+    source = tmp_path / "source.mcap"
+    write_source_recording(source, frames=30)
+    launch = tmp_path / "launch.toml"
+    launch.write_text(f"""
+[[service]]
+name = "replay"
+module = "services.replay"
+args = ["{source}", "--loop"]
+nice = 9
+""")
+    sup = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", str(launch), "--out", str(tmp_path / "run"),
+                            "--hub", hub(zenoh_port), "--duration", "60"], cwd=ROOT, stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        def replay_threads():
+            kids = [p for p in children_of(sup.pid) if "services.replay" in cmdline(p)]
+            return thread_niceness(kids[0]) if kids else []
+        assert wait_until(lambda: replay_threads() and set(replay_threads()) == {9}, 30), replay_threads()
+    finally:
+        sup.send_signal(signal.SIGTERM)
+        sup.communicate(timeout=60)
 
 
 def test_launch_file_nice_is_read_and_checked(tmp_path):

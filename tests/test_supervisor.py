@@ -75,7 +75,9 @@ def test_killed_child_is_restarted_and_sigterm_leaves_no_child(tmp_path, zenoh_p
     write_source_recording(source, frames=60)
     sup = start_supervisor(tmp_path, zenoh_port, LAUNCH.format(duration=0, source=source))
     try:
-        assert wait_until(lambda: len(children_of(sup.pid)) == 2, 20), "both services should start"
+        # Count a child once it has exec'd its module (between fork and exec it still looks like the supervisor).
+        assert wait_until(lambda: sum("services." in cmdline(p) for p in children_of(sup.pid)) == 2, 20), \
+            "both services should start"
         (replay_pid,) = [p for p in children_of(sup.pid) if "services.replay" in cmdline(p)]
         recording = tmp_path / "run" / "recording.mcap"
         assert wait_until(lambda: recording.exists() and recording.stat().st_size > 20_000, 30)
