@@ -224,10 +224,10 @@ class Hierarchy:
         self.ip_off = np.concatenate([[0], np.cumsum(self.n + 1)]).astype(np.int64)
         self.e_off = np.concatenate([[0], np.cumsum(self.nnz)]).astype(np.int64)
         self.n_off = np.concatenate([[0], np.cumsum(self.n)]).astype(np.int64)
-        self.ip = np.concatenate(ips).astype(np.int64)
-        self.ind = np.concatenate(inds).astype(np.int64)
-        self.agg = np.concatenate(aggs + [np.zeros(0, np.int64)]).astype(np.int64)
-        self.emap = np.concatenate(emaps + [np.zeros(0, np.int64)]).astype(np.int64)
+        self.ip = np.concatenate(ips)
+        self.ind = np.concatenate(inds)
+        self.agg = np.concatenate(aggs + [np.zeros(0, np.int64)])
+        self.emap = np.concatenate(emaps + [np.zeros(0, np.int64)])
 
     def arrays(self):
         return (self.levels, self.n, self.nnz, self.ip_off, self.e_off, self.n_off, self.ip, self.ind,
@@ -302,6 +302,53 @@ def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, nc, cnnz):
 
 
 @njit(cache=True)
+def _coarse_operator_scaled(x, E, S, dg, ip, ind, vals, f, agg, emap, nc, cnnz):
+    """``_coarse_operator`` for a level whose log scale is fixed between calls (the fine level): with
+    ``E_i = exp(s_i - S_a)`` and ``S_a`` = max s over aggregate a precomputed (``level_scales``),
+    ``phi_i / max phi = E_i x_i / max(E x)`` needs no exponential or logarithm per cell."""
+    n = x.size
+    m = np.zeros(nc)
+    for i in range(n):
+        u = E[i] * x[i]
+        if u > m[agg[i]]:
+            m[agg[i]] = u
+    dgc = np.zeros(nc)
+    fc = np.zeros(nc)
+    vc = np.zeros(cnnz)
+    for i in range(n):
+        a = agg[i]
+        rel = E[i] * x[i] / m[a]
+        g = rel * rel
+        inv = 1.0 / x[i]
+        dgc[a] += g * dg[i]
+        fc[a] += g * f[i] * inv
+        for e in range(ip[i], ip[i + 1]):
+            c = g * vals[e] * x[ind[e]] * inv
+            k = emap[e]
+            if k < 0:
+                dgc[a] -= c
+            else:
+                vc[k] += c
+    tmax = np.empty(nc)
+    for a in range(nc):
+        tmax[a] = S[a] + np.log(m[a])
+    return tmax, dgc, vc, fc
+
+
+@njit(cache=True)
+def level_scales(s, agg, nc):
+    """(E, S): ``S_a`` = max s over aggregate a, ``E_i = exp(s_i - S_a)``."""
+    S = np.full(nc, -np.inf)
+    for i in range(s.size):
+        if s[i] > S[agg[i]]:
+            S[agg[i]] = s[i]
+    E = np.empty(s.size)
+    for i in range(s.size):
+        E[i] = np.exp(s[i] - S[agg[i]])
+    return E, S
+
+
+@njit(cache=True)
 def _dense_solve(dg, ip, ind, vals, f):
     """Gaussian elimination without pivoting (an M-matrix needs none) of the coarsest level."""
     n = dg.size
@@ -338,7 +385,8 @@ def _wdot(a, b, w):
 # Not cached: numba's on-disk cache of a self-recursive function segfaults when it is loaded back
 # (reproduced here); compiling it costs ~2 s once per process.
 @njit
-def _cycle(l, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, s, dg, vals, f, x, over_correction, kdepth, nu):
+def _cycle(l, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, s, dg, vals, f, x, over_correction, kdepth, nu,
+           E0, S0):
     """Improve ``x`` for level ``l``'s system.  ``krylov`` False: one cycle (pre-smooth, coarse factor
     solved recursively, ``x *= q ** over``, post-smooth).  True: the K-cycle — two such cycles (over = 1)
     combined by minimising the relative residual (two GCR steps), which makes the under-sized
@@ -358,27 +406,34 @@ def _cycle(l, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, s, dg, vals, f, x, ove
     over = 1.0 if krylov else over_correction
     reps = 2 if krylov else 1
     rep_lin = False          # the previous repetition contributed a Krylov direction
+    vv1 = 0.0                # (v1, v1) of that direction
     r = np.empty(n)
     w = np.empty(n)
+    d = np.empty(n)
     d1 = np.empty(n)
-    v1 = np.empty(n)
     v = np.empty(n)
+    v1 = np.empty(n)
+    xs = np.empty(n)
     if krylov:
         relative_residual(x, dg, ip, ind, vals, f, r)
         for i in range(n):
             w[i] = 1.0 / (dg[i] * dg[i])
+    hi = np.exp(LINEAR_BAND)
+    lo = 1.0 / hi
     for rep in range(reps):
-        xs = x.copy()
+        xs[:] = x
         for _ in range(nu):
             _gs(x, dg, ip, ind, vals, f, True)
-        sc, dgc, vc, fc = _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, nc, NNZ[l + 1])
+        if l == 0 and E0.size == n:
+            sc, dgc, vc, fc = _coarse_operator_scaled(x, E0, S0, dg, ip, ind, vals, f, agg, emap, nc, NNZ[l + 1])
+        else:
+            sc, dgc, vc, fc = _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, nc, NNZ[l + 1])
         q = np.ones(nc)
-        _cycle(l + 1, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, sc, dgc, vc, fc, q, over_correction, kdepth, nu)
+        _cycle(l + 1, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, sc, dgc, vc, fc, q, over_correction, kdepth, nu,
+               E0, S0)
         # Over-correction and the Krylov combination rest on the linear picture (corrections small
         # relative to x); far from the solution (a cold start: factors of e^30) they diverge, so both
         # are used only when every factor of this cycle is within LINEAR_BAND of 1.
-        hi = np.exp(LINEAR_BAND)
-        lo = 1.0 / hi
         linear = True
         for a in range(nc):
             if q[a] > hi or q[a] < lo:
@@ -398,30 +453,37 @@ def _cycle(l, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, s, dg, vals, f, x, ove
             _gs(x, dg, ip, ind, vals, f, False)
         if not krylov:
             continue
-        if linear:
-            for i in range(n):
-                if x[i] > hi * xs[i] or x[i] < lo * xs[i]:
-                    linear = False
-                    break
+        for i in range(n):
+            d[i] = x[i] - xs[i]
+            if x[i] > hi * xs[i] or x[i] < lo * xs[i]:
+                linear = False
         if not linear:
             relative_residual(x, dg, ip, ind, vals, f, r)
             rep_lin = False
             continue
-        d = x - xs
         _matvec(d, dg, ip, ind, vals, v)
-        if rep == 1 and rep_lin:
-            b = _wdot(v, v1, w) / max(_wdot(v1, v1, w), 1e-300)
+        if rep_lin:
+            b = _wdot(v, v1, w) / max(vv1, 1e-300)
+            rv = 0.0
+            vv = 0.0
             for i in range(n):
                 d[i] -= b * d1[i]
                 v[i] -= b * v1[i]
-        a = _wdot(r, v, w) / max(_wdot(v, v, w), 1e-300)
+                rv += r[i] * v[i] * w[i]
+                vv += v[i] * v[i] * w[i]
+        else:
+            rv = _wdot(r, v, w)
+            vv = _wdot(v, v, w)
+        a = rv / max(vv, 1e-300)
         for i in range(n):
             # GCR step; positivity kept (phi > 0 on every connected cell), the clamp is never active
             # near convergence
             x[i] = max(xs[i] + a * d[i], 0.05 * xs[i])
             r[i] -= a * v[i]
-        d1[:] = d
-        v1[:] = v
+        if rep + 1 < reps:
+            d1[:] = d
+            v1[:] = v
+            vv1 = vv
         rep_lin = True
     return 0
 
@@ -472,6 +534,7 @@ class LogFieldSolver:
         self._dg = np.ones(self.cells.size)
         self._res = np.empty(self.cells.size)
         self._prev = np.empty(self.cells.size)
+        self._E = self._S = None          # fine-level scales (level_scales), valid until the next rebase
 
     @property
     def size(self) -> int:
@@ -481,8 +544,11 @@ class LogFieldSolver:
         """One fine-level cycle; returns the largest relative change of phi it made."""
         L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP = self.hier.arrays()
         self._prev[:] = self.x
+        if self._E is None and L > 1:
+            self._E, self._S = level_scales(self.s, AGG[:NN[0]], NN[1])
+        E, S = (self._E, self._S) if L > 1 else (np.zeros(0), np.zeros(0))
         _cycle(0, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, self.s, self._dg, self.vals, self.f, self.x,
-               float(over_correction), int(krylov_levels), int(smoothing))
+               float(over_correction), int(krylov_levels), int(smoothing), E, S)
         return float(_max_rel_change(self.x, self._prev)) if self.size else 0.0
 
     def residual(self) -> float:
@@ -497,3 +563,4 @@ class LogFieldSolver:
 
     def rebase(self) -> None:
         rebase(self.x, self.s, self.ip, self.ind, self.vals, self.f)
+        self._E = self._S = None
