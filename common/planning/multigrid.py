@@ -271,23 +271,23 @@ def _matvec(d, dg, ip, ind, vals, out):
 
 
 @njit(cache=True)
-def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, nc, cnnz):
-    """Galerkin operator for the interpolation ``x * P0``: row a is the sum over the aggregate's cells of
-    their equations rescaled to phi and weighted by phi_i^2 / max phi^2 (the symmetric projection,
-    normalised per aggregate).  Returns the coarse (s, dg, vals, f)."""
+def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
+    """Galerkin operator for the interpolation ``x * P0``, written to (sc, dgc, vc, fc) = the coarse
+    level's (s, dg, vals, f): row a is the sum over the aggregate's cells of their equations rescaled to
+    phi and weighted by phi_i^2 / max phi^2 (the symmetric projection, normalised per aggregate)."""
     n = x.size
     t = np.empty(n)
-    tmax = np.full(nc, -np.inf)
+    sc[:] = -np.inf
     for i in range(n):
         t[i] = s[i] + np.log(x[i])          # log phi
-        if t[i] > tmax[agg[i]]:
-            tmax[agg[i]] = t[i]
-    dgc = np.zeros(nc)
-    fc = np.zeros(nc)
-    vc = np.zeros(cnnz)
+        if t[i] > sc[agg[i]]:
+            sc[agg[i]] = t[i]
+    dgc[:] = 0.0
+    fc[:] = 0.0
+    vc[:] = 0.0
     for i in range(n):
         a = agg[i]
-        g = np.exp(2.0 * (t[i] - tmax[a]))
+        g = np.exp(2.0 * (t[i] - sc[a]))
         inv = 1.0 / x[i]
         dgc[a] += g * dg[i]
         fc[a] += g * f[i] * inv
@@ -298,23 +298,23 @@ def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, nc, cnnz):
                 dgc[a] -= c
             else:
                 vc[k] += c
-    return tmax, dgc, vc, fc
 
 
 @njit(cache=True)
-def _coarse_operator_scaled(x, E, S, dg, ip, ind, vals, f, agg, emap, nc, cnnz):
+def _coarse_operator_scaled(x, E, S, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
     """``_coarse_operator`` for a level whose log scale is fixed between calls (the fine level): with
     ``E_i = exp(s_i - S_a)`` and ``S_a`` = max s over aggregate a precomputed (``level_scales``),
     ``phi_i / max phi = E_i x_i / max(E x)`` needs no exponential or logarithm per cell."""
     n = x.size
+    nc = sc.size
     m = np.zeros(nc)
     for i in range(n):
         u = E[i] * x[i]
         if u > m[agg[i]]:
             m[agg[i]] = u
-    dgc = np.zeros(nc)
-    fc = np.zeros(nc)
-    vc = np.zeros(cnnz)
+    dgc[:] = 0.0
+    fc[:] = 0.0
+    vc[:] = 0.0
     for i in range(n):
         a = agg[i]
         rel = E[i] * x[i] / m[a]
@@ -329,10 +329,8 @@ def _coarse_operator_scaled(x, E, S, dg, ip, ind, vals, f, agg, emap, nc, cnnz):
                 dgc[a] -= c
             else:
                 vc[k] += c
-    tmax = np.empty(nc)
     for a in range(nc):
-        tmax[a] = S[a] + np.log(m[a])
-    return tmax, dgc, vc, fc
+        sc[a] = S[a] + np.log(m[a])
 
 
 @njit(cache=True)
@@ -382,110 +380,158 @@ def _wdot(a, b, w):
     return acc
 
 
-# Not cached: numba's on-disk cache of a self-recursive function segfaults when it is loaded back
-# (reproduced here); compiling it costs ~2 s once per process.
-@njit
-def _cycle(l, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, s, dg, vals, f, x, over_correction, kdepth, nu,
-           E0, S0):
-    """Improve ``x`` for level ``l``'s system.  ``krylov`` False: one cycle (pre-smooth, coarse factor
-    solved recursively, ``x *= q ** over``, post-smooth).  True: the K-cycle — two such cycles (over = 1)
-    combined by minimising the relative residual (two GCR steps), which makes the under-sized
-    piecewise-constant corrections of the coarse levels exact in their span."""
-    n = NN[l]
+@njit(cache=True)
+def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, E0, S0):
+    """Start one repetition at level l: remember x, pre-smooth, and pose the coarse problem for the
+    factor q (level l+1's buffers, q = 1)."""
+    n, no, eo = NN[l], NO[l], EO[l]
+    nc, nco, eoc = NN[l + 1], NO[l + 1], EO[l + 1]
     ip = IP[PO[l]:PO[l] + n + 1]
-    ind = IND[EO[l]:EO[l] + NNZ[l]]
-    if l == L - 1:
-        sol = _dense_solve(dg, ip, ind, vals, f)
-        for i in range(n):
-            x[i] = max(sol[i], 1e-300)
-        return 0
-    agg = AGG[NO[l]:NO[l] + n]
-    emap = EMAP[EO[l]:EO[l] + NNZ[l]]
-    nc = NN[l + 1]
-    krylov = 1 <= l <= kdepth
-    over = 1.0 if krylov else over_correction
-    reps = 2 if krylov else 1
-    rep_lin = False          # the previous repetition contributed a Krylov direction
-    vv1 = 0.0                # (v1, v1) of that direction
-    r = np.empty(n)
-    w = np.empty(n)
-    d = np.empty(n)
-    d1 = np.empty(n)
-    v = np.empty(n)
-    v1 = np.empty(n)
-    xs = np.empty(n)
-    if krylov:
-        relative_residual(x, dg, ip, ind, vals, f, r)
-        for i in range(n):
-            w[i] = 1.0 / (dg[i] * dg[i])
+    ind = IND[eo:eo + NNZ[l]]
+    x = X[no:no + n]
+    dg = DG[no:no + n]
+    vals = VALS[eo:eo + NNZ[l]]
+    f = F[no:no + n]
+    XS[no:no + n] = x
+    for _ in range(nu):
+        _gs(x, dg, ip, ind, vals, f, True)
+    agg = AGG[no:no + n]
+    emap = EMAP[eo:eo + NNZ[l]]
+    out = (S[nco:nco + nc], DG[nco:nco + nc], VALS[eoc:eoc + NNZ[l + 1]], F[nco:nco + nc])
+    if l == 0 and E0.size == n:
+        _coarse_operator_scaled(x, E0, S0, dg, ip, ind, vals, f, agg, emap, out[0], out[1], out[2], out[3])
+    else:
+        _coarse_operator(x, S[no:no + n], dg, ip, ind, vals, f, agg, emap, out[0], out[1], out[2], out[3])
+    X[nco:nco + nc] = 1.0
+
+
+@njit(cache=True)
+def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, state,
+            over, krylov, nu):
+    """Finish one repetition at level l: apply the coarse factors q (over-corrected at a non-Krylov
+    level), post-smooth, and at a Krylov level take the GCR step.  ``state`` = [rep_lin, vv1] of this
+    level (the previous repetition's Krylov direction and its norm)."""
+    n, no, eo = NN[l], NO[l], EO[l]
+    nc, nco = NN[l + 1], NO[l + 1]
+    ip = IP[PO[l]:PO[l] + n + 1]
+    ind = IND[eo:eo + NNZ[l]]
+    x, xs = X[no:no + n], XS[no:no + n]
+    dg, f = DG[no:no + n], F[no:no + n]
+    vals = VALS[eo:eo + NNZ[l]]
+    agg = AGG[no:no + n]
+    q = X[nco:nco + nc]
     hi = np.exp(LINEAR_BAND)
     lo = 1.0 / hi
-    for rep in range(reps):
-        xs[:] = x
-        for _ in range(nu):
-            _gs(x, dg, ip, ind, vals, f, True)
-        if l == 0 and E0.size == n:
-            sc, dgc, vc, fc = _coarse_operator_scaled(x, E0, S0, dg, ip, ind, vals, f, agg, emap, nc, NNZ[l + 1])
-        else:
-            sc, dgc, vc, fc = _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, nc, NNZ[l + 1])
-        q = np.ones(nc)
-        _cycle(l + 1, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, sc, dgc, vc, fc, q, over_correction, kdepth, nu,
-               E0, S0)
-        # Over-correction and the Krylov combination rest on the linear picture (corrections small
-        # relative to x); far from the solution (a cold start: factors of e^30) they diverge, so both
-        # are used only when every factor of this cycle is within LINEAR_BAND of 1.
-        linear = True
-        for a in range(nc):
-            if q[a] > hi or q[a] < lo:
-                linear = False
-                break
-        if over != 1.0:
-            if linear:
-                for a in range(nc):
-                    q[a] = q[a] ** over
-            elif OVER_CLIP > 0.0:
-                for a in range(nc):
-                    lq = np.log(q[a])
-                    q[a] *= np.exp(min(max((over - 1.0) * lq, -OVER_CLIP), OVER_CLIP))
+    # Over-correction and the Krylov combination rest on the linear picture (corrections small relative
+    # to x); far from the solution (a cold start: factors of e^30) they diverge, so both are used only
+    # when every factor of this repetition is within LINEAR_BAND of 1 (over-correction outside it is
+    # clipped to e^OVER_CLIP).
+    linear = True
+    for a in range(nc):
+        if q[a] > hi or q[a] < lo:
+            linear = False
+            break
+    if over != 1.0:
+        if linear:
+            for a in range(nc):
+                q[a] = q[a] ** over
+        elif OVER_CLIP > 0.0:
+            for a in range(nc):
+                q[a] *= np.exp(min(max((over - 1.0) * np.log(q[a]), -OVER_CLIP), OVER_CLIP))
+    for i in range(n):
+        x[i] *= q[agg[i]]
+    for _ in range(nu):
+        _gs(x, dg, ip, ind, vals, f, False)
+    if not krylov:
+        return
+    r, w = R[no:no + n], W[no:no + n]
+    d, d1, v, v1 = D[no:no + n], D1[no:no + n], V[no:no + n], V1[no:no + n]
+    for i in range(n):
+        d[i] = x[i] - xs[i]
+        if x[i] > hi * xs[i] or x[i] < lo * xs[i]:
+            linear = False
+    if not linear:
+        relative_residual(x, dg, ip, ind, vals, f, r)
+        state[0] = 0.0
+        return
+    _matvec(d, dg, ip, ind, vals, v)
+    if state[0] > 0.0:
+        b = _wdot(v, v1, w) / max(state[1], 1e-300)
+        rv = 0.0
+        vv = 0.0
         for i in range(n):
-            x[i] *= q[agg[i]]
-        for _ in range(nu):
-            _gs(x, dg, ip, ind, vals, f, False)
-        if not krylov:
-            continue
+            d[i] -= b * d1[i]
+            v[i] -= b * v1[i]
+            rv += r[i] * v[i] * w[i]
+            vv += v[i] * v[i] * w[i]
+    else:
+        rv = _wdot(r, v, w)
+        vv = _wdot(v, v, w)
+    a = rv / max(vv, 1e-300)
+    for i in range(n):
+        # GCR step; positivity kept (phi > 0 on every connected cell), the clamp is never active near
+        # convergence
+        x[i] = max(xs[i] + a * d[i], 0.05 * xs[i])
+        r[i] -= a * v[i]
+    d1[:] = d
+    v1[:] = v
+    state[0] = 1.0
+    state[1] = vv
+
+
+@njit(cache=True)
+def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1,
+           over_correction, kdepth, nu, E0, S0):
+    """One cycle from the fine level, written as a loop over an explicit level pointer (numba cannot
+    cache a recursive function).  Level 0 and levels deeper than ``kdepth`` do one repetition: pre-smooth,
+    coarse factor q solved at the next level, ``x *= q ** over_correction``, post-smooth.  Levels
+    1..kdepth are K-cycles: two repetitions (no over-correction) combined by two GCR steps that minimise
+    the relative residual, which makes the under-sized piecewise-constant corrections exact in their
+    span.  The coarsest level is solved directly.  All levels' arrays live in the flat buffers at
+    offsets NO (nodes) / EO (entries)."""
+    rep = np.zeros(L, dtype=np.int64)
+    state = np.zeros((L, 2))
+    if L == 1:
+        n = NN[0]
+        sol = _dense_solve(DG[:n], IP[:n + 1], IND[:NNZ[0]], VALS[:NNZ[0]], F[:n])
         for i in range(n):
-            d[i] = x[i] - xs[i]
-            if x[i] > hi * xs[i] or x[i] < lo * xs[i]:
-                linear = False
-        if not linear:
-            relative_residual(x, dg, ip, ind, vals, f, r)
-            rep_lin = False
-            continue
-        _matvec(d, dg, ip, ind, vals, v)
-        if rep_lin:
-            b = _wdot(v, v1, w) / max(vv1, 1e-300)
-            rv = 0.0
-            vv = 0.0
+            X[i] = max(sol[i], 1e-300)
+        return
+    l = 0
+    entering = True
+    while True:
+        if l == L - 1:
+            n, no, eo = NN[l], NO[l], EO[l]
+            sol = _dense_solve(DG[no:no + n], IP[PO[l]:PO[l] + n + 1], IND[eo:eo + NNZ[l]],
+                               VALS[eo:eo + NNZ[l]], F[no:no + n])
             for i in range(n):
-                d[i] -= b * d1[i]
-                v[i] -= b * v1[i]
-                rv += r[i] * v[i] * w[i]
-                vv += v[i] * v[i] * w[i]
+                X[no + i] = max(sol[i], 1e-300)
+            l -= 1
+            entering = False
+            continue
+        krylov = 1 <= l <= kdepth
+        if entering:
+            rep[l] = 0
+            state[l, 0] = 0.0
+            if krylov:
+                n, no, eo = NN[l], NO[l], EO[l]
+                relative_residual(X[no:no + n], DG[no:no + n], IP[PO[l]:PO[l] + n + 1], IND[eo:eo + NNZ[l]],
+                                  VALS[eo:eo + NNZ[l]], F[no:no + n], R[no:no + n])
+                for i in range(n):
+                    W[no + i] = 1.0 / (DG[no + i] * DG[no + i])
         else:
-            rv = _wdot(r, v, w)
-            vv = _wdot(v, v, w)
-        a = rv / max(vv, 1e-300)
-        for i in range(n):
-            # GCR step; positivity kept (phi > 0 on every connected cell), the clamp is never active
-            # near convergence
-            x[i] = max(xs[i] + a * d[i], 0.05 * xs[i])
-            r[i] -= a * v[i]
-        if rep + 1 < reps:
-            d1[:] = d
-            v1[:] = v
-            vv1 = vv
-        rep_lin = True
-    return 0
+            _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1,
+                    state[l], 1.0 if krylov else over_correction, krylov, nu)
+            rep[l] += 1
+            if rep[l] >= (2 if krylov else 1):
+                if l == 0:
+                    return
+                l -= 1
+                entering = False
+                continue
+        _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, E0, S0)
+        l += 1
+        entering = True
 
 
 @njit(cache=True)
@@ -527,13 +573,23 @@ class LogFieldSolver:
     ``s`` (compact log scale) and ``x`` (relative factor) hold the iterate: log phi = s + log x."""
 
     def __init__(self, state: np.ndarray, s_padded: np.ndarray, coarsest: int = 48):
-        self.cells, self.ip, self.ind, self.vals, self.f, cy, cx = fine_system(state, s_padded)
-        self.s = s_padded.ravel()[self.cells].copy()
-        self.x = np.ones(self.cells.size)
-        self.hier = Hierarchy(self.ip, self.ind, cy, cx, coarsest)
-        self._dg = np.ones(self.cells.size)
-        self._res = np.empty(self.cells.size)
-        self._prev = np.empty(self.cells.size)
+        cells, ip, ind, vals, f, cy, cx = fine_system(state, s_padded)
+        self.cells, self.ip, self.ind = cells, ip, ind
+        self.hier = Hierarchy(ip, ind, cy, cx, coarsest)
+        n, nodes, entries = cells.size, int(self.hier.n.sum()), int(self.hier.nnz.sum())
+        # Every level's arrays in flat buffers (offsets in the hierarchy); level 0's are views into them.
+        self._buf = {k: np.zeros(nodes) for k in ("S", "DG", "F", "X", "XS", "R", "W", "D", "D1", "V", "V1")}
+        self._vals = np.zeros(entries)
+        self.s, self.x, self.f = self._buf["S"][:n], self._buf["X"][:n], self._buf["F"][:n]
+        self.vals = self._vals[:ind.size]
+        self.s[:] = s_padded.ravel()[cells]
+        self.x[:] = 1.0
+        self.f[:] = f
+        self.vals[:] = vals
+        self._dg = self._buf["DG"][:n]
+        self._dg[:] = 1.0
+        self._res = np.empty(n)
+        self._prev = np.empty(n)
         self._E = self._S = None          # fine-level scales (level_scales), valid until the next rebase
 
     @property
@@ -543,12 +599,14 @@ class LogFieldSolver:
     def cycle(self, over_correction: float, smoothing: int, krylov_levels: int) -> float:
         """One fine-level cycle; returns the largest relative change of phi it made."""
         L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP = self.hier.arrays()
+        if self._E is None:
+            self._E, self._S = (level_scales(self.s, AGG[:NN[0]], NN[1]) if L > 1
+                                else (np.zeros(0), np.zeros(0)))
         self._prev[:] = self.x
-        if self._E is None and L > 1:
-            self._E, self._S = level_scales(self.s, AGG[:NN[0]], NN[1])
-        E, S = (self._E, self._S) if L > 1 else (np.zeros(0), np.zeros(0))
-        _cycle(0, L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, self.s, self._dg, self.vals, self.f, self.x,
-               float(over_correction), int(krylov_levels), int(smoothing), E, S)
+        b = self._buf
+        _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"], b["X"], b["XS"],
+               b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], float(over_correction), int(krylov_levels),
+               int(smoothing), self._E, self._S)
         return float(_max_rel_change(self.x, self._prev)) if self.size else 0.0
 
     def residual(self) -> float:
