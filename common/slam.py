@@ -136,8 +136,8 @@ class FlyLocaliser:
                        if calibration is not None and self.config.use_stereo_model else None)
         self._driven_since_fix = 0.0
         self._turned_since_fix = 0.0
-        self._last_pred: np.ndarray | None = None
-        self._last_pred_stamp: int | None = None
+        self._last_odom: np.ndarray | None = None
+        self._last_odom_stamp: int | None = None
         self._turn_rate = 0.0
 
         self.keyframes: deque[Keyframe] = deque(maxlen=self.config.max_keyframes)
@@ -232,14 +232,16 @@ class FlyLocaliser:
     def _predict(self, stamp_ns: int, T_odom_base: np.ndarray | None) -> tuple[np.ndarray, str]:
         if T_odom_base is not None:
             T = self.T_map_odom @ T_odom_base
-            if self._last_pred is not None:
-                self._driven_since_fix += float(np.linalg.norm(T[:2, 3] - self._last_pred[:2, 3]))
-                rel = invert(self._last_pred) @ T
+            if self._last_odom is not None:
+                # Motion since the previous update from odometry alone: a correction of map->odom is not
+                # motion, and counting it as turning tripped the turn-rate limit after every fix.
+                rel = invert(self._last_odom) @ T_odom_base
+                self._driven_since_fix += float(np.linalg.norm(rel[:2, 3]))
                 turned = abs(float(np.arctan2(rel[1, 0], rel[0, 0])))
                 self._turned_since_fix += turned
-                dt = (stamp_ns - self._last_pred_stamp) * 1e-9
+                dt = (stamp_ns - self._last_odom_stamp) * 1e-9
                 self._turn_rate = turned / dt if dt > 1e-3 else self._turn_rate
-            self._last_pred, self._last_pred_stamp = T, stamp_ns
+            self._last_odom, self._last_odom_stamp = T_odom_base.copy(), stamp_ns
             return T, "odometry"
         tr = self._track
         if tr.last_T_map_base is None:

@@ -96,3 +96,56 @@ def test_map_memory_stays_bounded():
         loc.update(k * 10**8, cam, np.ones(len(cam)), T)
     assert len(loc.keyframes) == 5
     assert sum(len(kf.points) for kf in loc.keyframes) <= 5 * 40000
+
+
+def room_points(rng, n):
+    """Flies on the walls of a closed 11 m × 2 m corridor section (x in [-3, 8], y = ±1, end walls) with
+    boxes, so that a robot turning on the spot at the origin sees a different wall at every heading."""
+    side = rng.integers(0, 4, n)
+    t = rng.random(n)
+    x = np.where(side < 2, -3.0 + 11.0 * t, np.where(side == 2, -3.0, 8.0))
+    y = np.where(side == 0, 1.0, np.where(side == 1, -1.0, -1.0 + 2.0 * t))
+    pts = np.stack([x, y, rng.uniform(0.1, 2.0, n)], 1)
+    box = rng.random(n) < 0.15
+    pts[box, 1] *= 0.7
+    pts[box, 0] = np.round(pts[box, 0])
+    return pts
+
+
+def _view(world, T, rng):
+    cam = seen_from(T, world)
+    cam = cam[(cam[:, 2] < 8.0) & (np.abs(cam[:, 0]) < 0.7 * cam[:, 2])][:3000]   # a 70° field of view
+    return cam + rng.normal(0, 0.01, cam.shape)
+
+
+def test_local_map_is_the_keyframes_that_look_the_same_way():
+    """Two keyframes at the same spot, one looking down the corridor and one looking back: the local map
+    for a robot looking back is the keyframe that looks back, not merely the nearest one."""
+    rng = np.random.default_rng(3)
+    world = room_points(rng, 60000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(local_keyframes=1))
+    ahead, back = planar_pose(0.0, 0.0, 0.0), planar_pose(0.05, 0.0, np.pi)
+    loc.update(0, _view(world, ahead, rng), np.full(3000, 0.5), ahead, generation=500)
+    # Looking back the map does not cover the view: a keyframe is added even without a registration.
+    est = loc.update(20 * 10**9, _view(world, back, rng), np.full(3000, 0.5), back, generation=500)   # 9°/s
+    assert est.keyframe_added and len(loc.keyframes) == 2
+    chosen = loc.local_map(planar_pose(0.0, 0.0, np.pi))
+    assert np.median(chosen[:, 0]) < 0     # the points behind the start (x < 0), not those ahead
+    chosen = loc.local_map(planar_pose(0.1, 0.0, 0.0))       # nearer to the back-looking keyframe
+    assert np.median(chosen[:, 0]) > 0
+
+
+def test_no_registration_while_turning_fast():
+    """Populations evolved while the view sweeps fast are not registered nor made keyframes; odometry
+    carries the pose and the status says why."""
+    rng = np.random.default_rng(4)
+    world = room_points(rng, 60000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
+    loc.update(0, _view(world, planar_pose(0, 0, 0), rng), np.full(3000, 0.5), planar_pose(0, 0, 0), generation=500)
+    T = planar_pose(0.0, 0.0, np.deg2rad(9.0))          # 9° in 0.1 s: 90°/s
+    est = loc.update(10**8, _view(world, T, rng), np.full(3000, 0.5), T, generation=500)
+    assert not est.registered and est.status.startswith("odometry only: turning at 90°/s")
+    assert not est.keyframe_added and np.allclose(est.T_map_base, T)
+    T2 = planar_pose(0.0, 0.0, np.deg2rad(9.5))         # then slowly: registered again
+    est = loc.update(2 * 10**8, _view(world, T2, rng), np.full(3000, 0.5), T2, generation=500)
+    assert est.status == "ok"
