@@ -577,20 +577,40 @@ class LogFieldSolver:
         self.cells, self.ip, self.ind = cells, ip, ind
         self.hier = Hierarchy(ip, ind, cy, cx, coarsest)
         n, nodes, entries = cells.size, int(self.hier.n.sum()), int(self.hier.nnz.sum())
-        # Every level's arrays in flat buffers (offsets in the hierarchy); level 0's are views into them.
+        # Every level's arrays in flat buffers (offsets in the hierarchy); level 0's are slices of them,
+        # taken on access (stored views would come apart under copy.deepcopy).
         self._buf = {k: np.zeros(nodes) for k in ("S", "DG", "F", "X", "XS", "R", "W", "D", "D1", "V", "V1")}
         self._vals = np.zeros(entries)
-        self.s, self.x, self.f = self._buf["S"][:n], self._buf["X"][:n], self._buf["F"][:n]
-        self.vals = self._vals[:ind.size]
         self.s[:] = s_padded.ravel()[cells]
         self.x[:] = 1.0
         self.f[:] = f
         self.vals[:] = vals
-        self._dg = self._buf["DG"][:n]
         self._dg[:] = 1.0
         self._res = np.empty(n)
         self._prev = np.empty(n)
         self._E = self._S = None          # fine-level scales (level_scales), valid until the next rebase
+
+    @property
+    def s(self) -> np.ndarray:
+        """Log scale of the ACTIVE cells (compact order of ``cells``)."""
+        return self._buf["S"][:self.cells.size]
+
+    @property
+    def x(self) -> np.ndarray:
+        """Relative factor: log phi = s + log x."""
+        return self._buf["X"][:self.cells.size]
+
+    @property
+    def f(self) -> np.ndarray:
+        return self._buf["F"][:self.cells.size]
+
+    @property
+    def _dg(self) -> np.ndarray:
+        return self._buf["DG"][:self.cells.size]
+
+    @property
+    def vals(self) -> np.ndarray:
+        return self._vals[:self.ind.size]
 
     @property
     def size(self) -> int:
