@@ -244,8 +244,8 @@ def test_a_narrowing_far_along_a_winding_corridor_is_absorbed_in_a_few_cycles():
 def test_multigrid_matches_a_direct_solve_across_one_cell_walls():
     """Two-cell-wide corridors separated by walls one cell thick, joined at alternate ends: from the
     second level on, every block of the coarsening straddles a wall, so an aggregation that ignored
-    connectivity would tie together cells whose phi differs by orders of magnitude.  The multigrid (cold start, then to convergence)
-    gives the direct solve's log phi."""
+    connectivity would tie together cells whose phi differs by orders of magnitude.  The multigrid (cold
+    start, then to convergence) gives the direct solve's log phi."""
     from common.planning.multigrid import LogFieldSolver
     h, w = 23, 40
     state = np.full((h + 2, w + 2), hk.BLOCKED, dtype=np.int8)
