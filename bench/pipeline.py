@@ -12,7 +12,8 @@ Prints, and with --json as one JSON object on the last line:
 - frames_skipped_fraction: frames the evolver never worked on (its latest-value input dropped them);
 - evolver_generations_per_s: from the evolver's heartbeat;
 - peak_rss_mb: peak of the sum of all services' resident memory; rss_growth_mb: second half of the run
-  minus first half (≈ 0 when memory is flat). Figures only, no pass/fail.
+  minus first half (≈ 0 when memory is flat; start-up falls in the first half), rss_growth_after_warmup_mb:
+  last quarter minus second quarter. Figures only, no pass/fail.
 - stages_ms: where a frame's latency goes (p50/p99 over the frames that got a pose), from the evolver's
   per-frame trace (``--trace``: monotonic times, the same clock as this process's receive times):
   frame→take (the frame waits in the evolver's latest-value slot while it finishes a generation or the
@@ -342,6 +343,10 @@ def main(argv=None) -> int:
         "evolver_generations_per_s": round(float(evo.rates.get("generations_per_s", 0)), 1) if evo else None,
         "peak_rss_mb": round(float(rss[:, 1].max()), 1) if len(rss) else None,
         "rss_growth_mb": round(float(np.median(rss[half:, 1]) - np.median(rss[:half, 1])), 1) if half > 2 else None,
+        # The first half includes start-up (imports, numba compilation, the first keyframes), so also: last
+        # quarter minus second quarter, both after the services have warmed up.
+        "rss_growth_after_warmup_mb": round(float(np.median(rss[3 * half // 2:, 1]) - np.median(rss[half // 2:half, 1])), 1)
+        if half > 4 else None,
         "frames_published": frames, "frames_evolved": evolved, "poses": int(lat.size),
         "posed_fraction": round(lat.size / frames, 3) if frames else None,
         "ate_rmse_m": ate,
