@@ -139,6 +139,11 @@ class FlyLocaliser:
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp: int | None = None
         self._turn_rate = 0.0
+        # The visibility count runs on every update over the whole keyframe window: the concatenated map
+        # is rebuilt only when the window changed, and the count for the last pose asked is kept (the
+        # local map and the coverage test of a rejected update ask about the same predicted pose).
+        self._map_cache: tuple | None = None
+        self._visible_cache: tuple | None = None
 
         self.keyframes: deque[Keyframe] = deque(maxlen=self.config.max_keyframes)
         self.T_map_odom = np.eye(4)
@@ -164,13 +169,26 @@ class FlyLocaliser:
         return base[band], f[keep][band]
 
     # ------------------------------------------------------------------------------------ map
+    def _map_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All keyframe points in the map frame (float32), the index of the keyframe each belongs to and
+        each keyframe's size; rebuilt only when the keyframe window changed."""
+        ids = tuple(kf.id for kf in self.keyframes)
+        if self._map_cache is None or self._map_cache[0] != ids:
+            sizes = np.array([len(kf.points_map) for kf in self.keyframes], dtype=np.int64)
+            pts = np.concatenate([kf.points_map for kf in self.keyframes]).astype(np.float32)
+            self._map_cache = (ids, pts, np.repeat(np.arange(len(sizes)), sizes), sizes)
+        return self._map_cache[1:]
+
     def _visible_per_keyframe(self, T_map_base: np.ndarray) -> np.ndarray:
         """How many of each keyframe's points a camera at ``T_map_base`` would see (vectorised over the
-        whole map: one transform, one projection, one bincount)."""
+        whole map: one transform, one projection, one bincount; the last answer is reused for the same
+        pose and keyframes)."""
         if not self.keyframes:
             return np.zeros(0, dtype=np.int64)
-        pts = np.concatenate([kf.points_map for kf in self.keyframes]).astype(np.float64)
-        owner = np.repeat(np.arange(len(self.keyframes)), [len(kf.points_map) for kf in self.keyframes])
+        pts, owner, _ = self._map_arrays()
+        key = (np.asarray(T_map_base, dtype=float).tobytes(), self._map_cache[0])
+        if self._visible_cache is not None and self._visible_cache[0] == key:
+            return self._visible_cache[1]
         cam = transform_points(invert(T_map_base @ self.T_base_camera), pts)
         if self.stereo is not None:
             seen = visible_mask(cam, self.stereo.calib, (0.3, self.config.max_depth_m), margin=0.0)
@@ -178,7 +196,9 @@ class FlyLocaliser:
             with np.errstate(divide="ignore", invalid="ignore"):
                 seen = ((cam[:, 2] > 0.3) & (cam[:, 2] < self.config.max_depth_m)
                         & (np.abs(cam[:, 0] / cam[:, 2]) < np.tan(self.config.fallback_half_fov_rad)))
-        return np.bincount(owner[seen], minlength=len(self.keyframes))
+        visible = np.bincount(owner[seen], minlength=len(self.keyframes))
+        self._visible_cache = (key, visible)
+        return visible
 
     def _local_keyframes(self, T_map_base: np.ndarray) -> tuple[list[int], float]:
         """Indices of the keyframes that see most of what a camera at ``T_map_base`` sees, and the best
@@ -190,7 +210,7 @@ class FlyLocaliser:
         visible = self._visible_per_keyframe(T_map_base)
         if len(visible) == 0 or visible.max() == 0:
             return [], 0.0
-        sizes = np.array([max(len(kf.points_map), 1) for kf in self.keyframes])
+        sizes = np.maximum(self._map_arrays()[2], 1)
         order = np.argsort(-visible, kind="stable")[: self.config.local_keyframes]
         chosen = [int(i) for i in order if visible[i] > 0]
         return chosen, float((visible / sizes).max())
@@ -279,8 +299,9 @@ class FlyLocaliser:
             # Registered poses extend the map; so does odometry when the map no longer covers the robot
             # (a long featureless stretch), or the map would stop growing.
             far = self._distance_to_map(T_map_base) > 2 * c.keyframe_distance_m
-            uncovered = bool(self.keyframes) and self._local_keyframes(T_map_base)[1] < c.min_view_coverage
-            if may_add and (registered or far or uncovered) and len(points) >= c.min_flies and self._needs_keyframe(T_map_base):
+            # (the coverage test projects the whole map: asked last, and only when it decides)
+            if (may_add and len(points) >= c.min_flies and self._needs_keyframe(T_map_base)
+                    and (registered or far or self._local_keyframes(T_map_base)[1] < c.min_view_coverage)):
                 self._add_keyframe(stamp_ns, T_map_base, points, fit)
                 added = True
             if T_odom_base is not None:
