@@ -132,6 +132,7 @@ class FlyLocaliser:
                  calibration=None):
         self.T_base_camera = np.asarray(T_base_camera, dtype=float)
         self.config = config or LocaliserConfig()
+        self.calibration = calibration
         self.stereo = (StereoModel(calibration, depth_range=(0.3, self.config.max_depth_m))
                        if calibration is not None and self.config.use_stereo_model else None)
         self._driven_since_fix = 0.0
@@ -190,8 +191,8 @@ class FlyLocaliser:
         if self._visible_cache is not None and self._visible_cache[0] == key:
             return self._visible_cache[1]
         cam = transform_points(invert(T_map_base @ self.T_base_camera), pts)
-        if self.stereo is not None:
-            seen = visible_mask(cam, self.stereo.calib, (0.3, self.config.max_depth_m), margin=0.0)
+        if self.calibration is not None:
+            seen = visible_mask(cam, self.calibration, (0.3, self.config.max_depth_m), margin=0.0)
         else:   # no calibration: a forward cone of the configured half-angle
             with np.errstate(divide="ignore", invalid="ignore"):
                 seen = ((cam[:, 2] > 0.3) & (cam[:, 2] < self.config.max_depth_m)
@@ -250,7 +251,11 @@ class FlyLocaliser:
 
     # ------------------------------------------------------------------------------ prediction
     def _predict(self, stamp_ns: int, T_odom_base: np.ndarray | None) -> tuple[np.ndarray, str]:
-        if T_odom_base is not None:
+        if T_odom_base is None:
+            # No odometry, no measured turn rate: a rate left over from the last odometry would keep
+            # refusing registrations (with a stale reason) for as long as odometry is missing.
+            self._turn_rate = 0.0
+        else:
             T = self.T_map_odom @ T_odom_base
             if self._last_odom is not None:
                 # Motion since the previous update from odometry alone: a correction of map->odom is not
@@ -287,8 +292,12 @@ class FlyLocaliser:
         ``generation``: the evolver's generation count. The map is not started before
         ``min_generations``: a young population is mostly random flies, and a first keyframe made of them
         rotated the live map frame by 0.2 rad within seconds (measured on a closed-loop run)."""
-        if T_odom_base is not None and not np.all(np.isfinite(T_odom_base)):
-            raise LocaliserError("T_odom_base is not finite")
+        if T_odom_base is not None:
+            T_odom_base = np.asarray(T_odom_base, dtype=float)
+            if T_odom_base.shape != (4, 4):
+                raise LocaliserError(f"T_odom_base must be a 4×4 transform, got shape {T_odom_base.shape}")
+            if not np.all(np.isfinite(T_odom_base)):
+                raise LocaliserError("T_odom_base is not finite")
         c = self.config
         points, fit = self.select_flies(positions_cam, fitness)
         T_pred, source = self._predict(stamp_ns, T_odom_base)
@@ -309,18 +318,20 @@ class FlyLocaliser:
             self._track_update(stamp_ns, T_map_base)
             return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
 
+        if not self.keyframes and generation is not None and generation < c.min_generations:
+            return finish(T_pred, f"odometry only: waiting for the flies to converge (generation "
+                                  f"{generation} < {c.min_generations})", False, cov_pred, may_add=False)
+        # Before the first keyframe too: a map started from a population evolved while turning fast is
+        # the worst case of the bent map this limit prevents.
+        if self._turn_rate > c.max_turn_rate_radps:
+            return finish(T_pred, f"odometry only: turning at {np.rad2deg(self._turn_rate):.0f}°/s "
+                                  f"(> {np.rad2deg(c.max_turn_rate_radps):.0f}°/s)", False, cov_pred, may_add=False)
         if not self.keyframes:
-            if generation is not None and generation < c.min_generations:
-                return finish(T_pred, f"odometry only: waiting for the flies to converge (generation "
-                                      f"{generation} < {c.min_generations})", False, cov_pred, may_add=False)
             if len(points) < c.min_flies:
                 return finish(T_pred, f"odometry only: {len(points)} usable flies to start a map", False, cov_pred)
             return finish(T_pred, "initialised", False, np.zeros((6, 6)))
         if len(points) < c.min_flies:
             return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies})", False, cov_pred)
-        if self._turn_rate > c.max_turn_rate_radps:
-            return finish(T_pred, f"odometry only: turning at {np.rad2deg(self._turn_rate):.0f}°/s "
-                                  f"(> {np.rad2deg(c.max_turn_rate_radps):.0f}°/s)", False, cov_pred, may_add=False)
         # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
         B = transform_points(invert(T_pred), self.local_map(T_pred))
         if source == "odometry":

@@ -149,3 +149,45 @@ def test_no_registration_while_turning_fast():
     T2 = planar_pose(0.0, 0.0, np.deg2rad(9.5))         # then slowly: registered again
     est = loc.update(2 * 10**8, _view(world, T2, rng), np.full(3000, 0.5), T2, generation=500)
     assert est.status == "ok"
+
+
+def test_no_map_is_started_while_turning_fast():
+    """The first keyframe is not made of a population evolved while the view swept fast: the map starts
+    once the turn slows."""
+    rng = np.random.default_rng(5)
+    world = room_points(rng, 60000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
+    T0 = planar_pose(0, 0, 0)
+    v = _view(world, T0, rng)
+    assert loc.update(0, v, np.full(len(v), 0.5), T0, generation=20).status.startswith("odometry only: waiting")
+    T1 = planar_pose(0.0, 0.0, np.deg2rad(9.0))          # 90°/s, and the flies have converged meanwhile
+    v = _view(world, T1, rng)
+    est = loc.update(10**8, v, np.full(len(v), 0.5), T1, generation=500)
+    assert est.status.startswith("odometry only: turning") and not loc.keyframes
+    T2 = planar_pose(0.0, 0.0, np.deg2rad(9.5))
+    v = _view(world, T2, rng)
+    assert loc.update(2 * 10**8, v, np.full(len(v), 0.5), T2, generation=500).status == "initialised"
+
+
+def test_missing_odometry_does_not_keep_a_stale_turn_rate():
+    """Odometry that drops out right after a fast turn: the localiser registers on its constant-velocity
+    prediction instead of refusing every population as 'turning' until odometry comes back."""
+    rng = np.random.default_rng(6)
+    world = room_points(rng, 60000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
+    T0, T1 = planar_pose(0, 0, 0), planar_pose(0.0, 0.0, np.deg2rad(4.0))   # 40°/s
+    v = _view(world, T0, rng)
+    loc.update(0, v, np.full(len(v), 0.5), T0, generation=500)
+    v = _view(world, T1, rng)
+    assert loc.update(10**8, v, np.full(len(v), 0.5), T1, generation=500).status.startswith("odometry only: turning")
+    v = _view(world, T1, rng)                                # stopped; no odometry for this population
+    est = loc.update(2 * 10**8, v, np.full(len(v), 0.5), None, generation=500)
+    assert est.registered and est.status == "ok"
+    # nearer the truth than the constant-velocity prediction (4° on, to 8°)
+    assert abs(planar_from_transform(invert(T1) @ est.T_map_base)[2]) < np.deg2rad(3.0)
+
+
+def test_malformed_odometry_pose_is_refused_with_a_reason():
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
+    with pytest.raises(LocaliserError, match="4×4"):
+        loc.update(0, np.ones((200, 3)), np.ones(200), np.eye(3))
