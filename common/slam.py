@@ -2,9 +2,11 @@
 
 The paper ("Flies open a door to SLAM") registers two consecutive populations; errors then accumulate
 like odometry. Here every population is registered against a *local map*: the keyframe populations
-nearest to the predicted pose, merged in the map frame. Keyframes are added when the robot has moved
-or turned enough since the nearest one, voxel-thinned, and the map keeps a bounded window of them, so
-memory stays flat on long runs.
+that see most of what a camera at the predicted pose would see (view overlap, not distance: a robot
+turning on the spot has keyframes at the same place looking every way), merged in the map frame.
+A keyframe is added where no existing one is both near and looking the same way, when the pose was
+registered, or the map is far away, or the map covers little of the view; keyframes are voxel-thinned,
+and the map keeps a bounded window of them, so memory stays flat on long runs.
 
 Per update (no I/O; the localiser service and ``flyslam eval`` both drive this class):
 
@@ -12,9 +14,12 @@ Per update (no I/O; the localiser service and ``flyslam eval`` both drive this c
    base_link;
 2. predict the pose: ``T_map_base = T_map_odom · T_odom_base`` from odometry, or a constant-velocity
    model when there is none (image-only datasets);
-3. register the flies (A) against the local map expressed in the predicted base frame (B), in the
-   plane (x, y, θ), within a window around the prediction;
-4. accept the result when the registration is well-posed and the correction plausible; then the
+3. while odometry says the robot turns faster than ``max_turn_rate_radps``, stop there: odometry
+   carries the pose (without odometry there is no measured rate and no such limit);
+4. register the flies (A) against the local map expressed in the predicted base frame (B), in the
+   plane (x, y, θ), within a window around the prediction (3 σ of the odometry prior, bounded by
+   ``window`` and ``max_window``);
+5. accept the result when the registration is well-posed and the correction plausible; then the
    map→odom transform absorbs the correction (REP-105). A rejected registration leaves map→odom as it
    was — odometry carries on — and the estimate says why.
 """
@@ -49,7 +54,7 @@ class LocaliserConfig:
     keyframe_distance_m: float = 1.5
     keyframe_angle_rad: float = np.deg2rad(15.0)
     max_keyframes: int = 40             # window of keyframes kept (oldest dropped)
-    local_keyframes: int = 3            # nearest keyframes merged into the local map
+    local_keyframes: int = 3            # keyframes merged into the local map (those seeing most of the view)
     window: tuple = (0.25, 0.25, np.deg2rad(8.0))   # search half-widths around the prediction (at least)
     # ... widened to 3 σ of the odometry prior: after a long turn without a fix the heading may be off by
     # more than the base window, and a window that cannot contain the answer only ever reports a
@@ -402,8 +407,8 @@ class FlyLocaliser:
 
     def _fuse_with_prior(self, params: np.ndarray, info: np.ndarray, source: str):
         """Posterior of f's (x, y, θ) from the prediction (f = identity, covariance growing with the
-        distance driven since the last fix) and the registration (params, information); None when the
-        two disagree beyond the χ² gate."""
+        distance driven and the angle turned since the last fix) and the registration (params,
+        information); None when the two disagree beyond the χ² gate."""
         c = self.config
         if source == "odometry":
             sxy, syaw = self._prior_sigmas()
