@@ -288,6 +288,39 @@ def _lattice(center, half, counts):
     return np.stack([m.ravel() for m in mesh], 1), tuple(len(a) for a in axes)
 
 
+_MIN_COUNT = 5   # 3 per axis put 2 of 3 candidates on the window's edge: more boundary rejections
+
+
+def _lattice_counts(mode, A, wa, half, counts, step):
+    """Lattice candidates per parameter: `counts`, fewer where the window is narrow for `step`.
+
+    A pinned parameter (half-width 0) gets one candidate (more would only repeat it).  With a `step`
+    (metres), a free one gets the fewest odd count, at least _MIN_COUNT and at most counts[i], whose
+    spacing moves A's flies by at most `step`: translations by their spacing, rotations by spacing ×
+    the flies' rms lever arm about the rotation axis.  The coarse objective is smooth over its
+    cut-off, so candidates much closer than that only repeat each other's basin: on the localiser's
+    0.25 m / 8° windows 7³ = 343 candidates 8 cm apart became 5³ = 125 (the lattice stage ≈15 → ≈5 ms;
+    a floor of 3 per axis was faster still but rejected more registrations as boundary minima).
+    """
+    counts = np.array([int(c) if h > 0 else 1 for c, h in zip(counts, half)])
+    if step is None:
+        return tuple(counts)
+    step = float(step)
+    if not np.isfinite(step) or step <= 0:
+        raise PopulationError(f"lattice_step must be a positive distance, got {step}")
+    k = len(half)
+    axis = {"optical": 1, "body": 2}.get(mode)
+    if axis is None:
+        lever = np.full(3, np.sqrt(np.average(np.sum(A * A, 1), weights=wa)))
+    else:
+        perp = np.delete(A, axis, 1)
+        lever = np.full(1, np.sqrt(np.average(np.sum(perp * perp, 1), weights=wa)))
+    n_rot = 1 if mode in PLANES else 3
+    metres = np.concatenate([half[:k - n_rot], half[k - n_rot:] * lever])
+    need = 2 * np.ceil(metres / step).astype(int) + 1
+    return tuple(int(c) if c <= 1 else int(min(c, max(_MIN_COUNT, n))) for c, n in zip(counts, need))
+
+
 def _poses_batch(mode: str, P: np.ndarray):
     """Rotations (m, 3, 3) and translations (m, 3) of every row of params P, vectorised (the lattice
     holds 343 planar or 3,375 6-DoF candidates; one Python pose call each cost milliseconds)."""
@@ -340,7 +373,7 @@ def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
 
 def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_counts, max_points,
               coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
-              objective="delta", local_radius=0.5):
+              objective="delta", local_radius=0.5, lattice_step=None):
     t0 = time.perf_counter()
     pose = _POSES[mode]
     k = 3 if mode in PLANES else 6
@@ -378,6 +411,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         rng.choice(fine_idx, coarse_points, replace=False))
 
     # --- candidate lattice and the field that covers every place A can reach under it
+    lattice_counts = _lattice_counts(mode, A[fine_idx], wa[fine_idx], half, lattice_counts, lattice_step)
     cand, lat_shape = _lattice(center, half, lattice_counts)
     Rs, ts = _poses_batch(mode, cand)
     lo, hi = _reach_bounds(A[fine_idx], Rs, ts)
@@ -541,6 +575,9 @@ class StereoModel:
     footprint_weighting: (z/10 m)².  covisibility: keep only flies the other camera could see under
     the current estimate, re-derived for each of `passes` registrations.  objective: "local"
     (LocalCorrelationField with cut-off `local_radius`) or "delta" (the paper's δ, weighted).
+    lattice_step: coarse-lattice spacing in metres of fly motion (see _lattice_counts; None: the full
+    `lattice` counts).  0.5 m, half the coarse kernel's 2 × local_radius cut-off: on the localiser's
+    replays the same estimates (within 0.1 mm on 98 % of the calls where both succeeded), ≈25 % faster.
     """
     calib: StereoCalibration
     depth_range: tuple = (0.0, np.inf)
@@ -555,6 +592,7 @@ class StereoModel:
     objective: str = "local"
     local_radius: float = 0.5
     thin_b: bool = True
+    lattice_step: float | None = 0.5
 
 
 def _register_stereo(mode, A, B, stereo: StereoModel, prior, window, weights_a, weights_b, args):
@@ -587,7 +625,8 @@ def _register_stereo(mode, A, B, stereo: StereoModel, prior, window, weights_a, 
             ma, mb = covisible_masks(A, B, T, stereo.calib, stereo.depth_range, stereo.margin, frame)
             wa_p, wb_p = wa * ma, wb * mb
         rest = args["rest"][:-2] + (stereo.objective, stereo.local_radius)
-        res = _register(mode, A, B, args["eps"], T, window, wa_p, wb_p, *rest)
+        step = stereo.lattice_step if args["lattice_step"] is None else args["lattice_step"]
+        res = _register(mode, A, B, args["eps"], T, window, wa_p, wb_p, *rest, lattice_step=step)
         if not res.ok:
             return res
         T = res.T
@@ -599,7 +638,7 @@ def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, 
                     max_points: int = 1000, coarse_points: int = 192, min_flies: int = 20,
                     flat_ratio: float = 0.02, ambiguity_ratio: float = 0.9, field_options=None,
                     seed: int = 0, stereo: StereoModel | None = None, objective: str = "delta",
-                    local_radius: float = 0.5) -> RegistrationResult:
+                    local_radius: float = 0.5, lattice_step: float | None = None) -> RegistrationResult:
     """Planar f minimising δ(A, f(B)): params (x, z, θ) for ``plane="optical"``, (x, y, θ) for "body".
 
     prior: 4×4 initial guess of f (e.g. from odometry; identity when None), projected onto the plane.
@@ -619,8 +658,8 @@ def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, 
             objective, local_radius)
     if stereo is not None:
         return _register_stereo(plane, A, B, stereo, prior, window, weights_a, weights_b,
-                                dict(eps=eps, rest=rest))
-    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, *rest)
+                                dict(eps=eps, rest=rest, lattice_step=lattice_step))
+    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, *rest, lattice_step=lattice_step)
 
 
 def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weights_a=None,
@@ -628,7 +667,7 @@ def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weigh
                   coarse_points: int = 128, min_flies: int = 20, flat_ratio: float = 0.02,
                   ambiguity_ratio: float = 0.9, field_options=None, seed: int = 0,
                   stereo: StereoModel | None = None, objective: str = "delta",
-                  local_radius: float = 0.5) -> RegistrationResult:
+                  local_radius: float = 0.5, lattice_step: float | None = None) -> RegistrationResult:
     """Full rigid f minimising δ(A, f(B)): params (tx, ty, tz, ωx, ωy, ωz), ω a rotation vector.
 
     The window is around the prior's params (ω of the prior's rotation); otherwise as register_planar.
@@ -639,5 +678,5 @@ def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weigh
             objective, local_radius)
     if stereo is not None:
         return _register_stereo("6dof", A, B, stereo, prior, window, weights_a, weights_b,
-                                dict(eps=eps, rest=rest))
-    return _register("6dof", A, B, eps, prior, window, weights_a, weights_b, *rest)
+                                dict(eps=eps, rest=rest, lattice_step=lattice_step))
+    return _register("6dof", A, B, eps, prior, window, weights_a, weights_b, *rest, lattice_step=lattice_step)
