@@ -192,11 +192,12 @@ class _Objective:
         J = _kernels.param_gradients(D, dR, np.ascontiguousarray(dt @ R), np.ascontiguousarray(Gq))
         return float(c.sum()), J
 
-    def translation_hessian(self, p, step):
-        """3×3 Hessian of J under a free translation u of all of f⁻¹(A) (central differences)."""
+    def translation_hessian(self, p, step, axes=(0, 1, 2)):
+        """3×3 Hessian of J under a free translation u of all of f⁻¹(A) (central differences); only
+        the rows (and, by symmetry, columns) of `axes` are computed, the others are left zero."""
         _, _, _, Q = self._points(p)
         H = np.zeros((3, 3))
-        for i in range(3):
+        for i in axes:
             e = np.zeros(3)
             e[i] = step
             g = []
@@ -204,18 +205,22 @@ class _Objective:
                 S, G = self.field._field(Q + sgn * e, True, self.near)
                 g.append(self._terms(S, G)[1].sum(0))
             H[i] = (g[0] - g[1]) / (2 * step)
-        return 0.5 * (H + H.T)
+        for i in axes:
+            H[:, i] = H[i]
+        return H
 
     def value_and_grad(self, p):
         v, J = self.per_fly(p)
         return v, J.sum(0)
 
 
-def _bfgs_box(fun, x0, lo, hi, maxiter, xtol=1e-5, ftol=1e-10):
+def _bfgs_box(fun, x0, lo, hi, maxiter, xtol=1e-5, ftol=1e-10, stop=None):
     """Minimise fun (returns value, gradient) inside the box [lo, hi]: projected BFGS, Armijo backtracking.
 
     A few parameters only; written here because scipy's L-BFGS-B spends milliseconds per call in its
-    Fortran/BLAS layer on this busy machine, more than our objective itself.
+    Fortran/BLAS layer on this busy machine, more than our objective itself.  stop(x): optional test
+    after each accepted step; True ends the search there (the registration's extra seeds stop once
+    they reach a basin already polished).
     """
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
     f, g = fun(x)
@@ -243,7 +248,7 @@ def _bfgs_box(fun, x0, lo, hi, maxiter, xtol=1e-5, ftol=1e-10):
         sy = s @ y
         done = np.max(np.abs(s)) < xtol or abs(f - fn) <= ftol * max(abs(f), 1e-300)
         x, f, g = xn, fn, gn
-        if done:
+        if done or (stop is not None and stop(x)):
             break
         if sy > 1e-300:
             rho = 1.0 / sy
@@ -446,22 +451,29 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     lo_b = np.where(free, -1.0, 0.0)
     hi_b = np.where(free, 1.0, 0.0)
 
-    def polish(obj, p_start, maxiter, xtol):
+    def polish(obj, p_start, maxiter, xtol, stop=None):
         x0 = np.clip((p_start - center) / scale, -1, 1)
 
         def fun(x):
             v, g = obj.value_and_grad(center + x * scale)
             return v, g * scale
-        x, v = _bfgs_box(fun, x0, lo_b, hi_b, maxiter, xtol=xtol)
+        x, v = _bfgs_box(fun, x0, lo_b, hi_b, maxiter, xtol=xtol, stop=stop)
         return center + x * scale, v
 
     marks.append(("lattice", time.perf_counter()))
     # --- 2. polish the lattice minima on the smoothed δ
     smooth = _Objective(fld_coarse, Ac, wac, pose, near=coarse_near, kind=objective)
-    polished = [polish(smooth, cand[s], 20, 1e-3) for s in seeds]
-    polished.sort(key=lambda pv: pv[1])
     # distinct minima only (closer than one lattice step in every scaled coordinate = same basin)
     step = np.where(np.asarray(lattice_counts) > 1, 2.0 / (np.maximum(lattice_counts, 2) - 1), 1.0)
+    # Most extra seeds roll into the best seed's basin (on the localiser's replays ≈95 % of them):
+    # stop one as soon as it comes within half a lattice step of a minimum already polished, where
+    # the distinct-minima filter below would drop it anyway.
+    polished = []
+    for s in seeds:
+        known = [(p - center) / scale for p, _ in polished]
+        polished.append(polish(smooth, cand[s], 20, 1e-3, stop=(lambda x, known=known: any(
+            np.all(np.abs(x - q) <= 0.5 * step) for q in known)) if known else None))
+    polished.sort(key=lambda pv: pv[1])
     distinct = []
     for p, v in polished:
         if all(np.any(np.abs((p - q) / scale) > step) for q, _ in distinct):
@@ -510,8 +522,20 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     eig = np.linalg.eigvalsh(Hs)
     # Stiffness reference: the populations' own stiffest direction under a free 3-D translation (so a
     # planar search over a ground plane, flat in all three of its parameters, is still seen as flat).
-    H3 = full.translation_hessian(p_best, fd[0])
-    evals += 6
+    if mode in PLANES:
+        # The in-plane block is the translation block of H seen through the rotation (a shift e of
+        # f⁻¹(A) is the pose translation t − R e): only the out-of-plane row needs evaluations.
+        normal = 2 if mode == "body" else 1
+        inplane = [i for i in range(3) if i != normal]
+        Rb = pose(p_best)[0]
+        Htt = np.zeros((3, 3))
+        Htt[np.ix_(inplane, inplane)] = H[:2, :2]
+        H3 = full.translation_hessian(p_best, fd[0], axes=(normal,))
+        H3[np.ix_(inplane, inplane)] = (Rb.T @ Htt @ Rb)[np.ix_(inplane, inplane)]
+        evals += 2
+    else:
+        H3 = full.translation_hessian(p_best, fd[0])
+        evals += 6
     stiff = max(eig[-1], float(np.linalg.eigvalsh(H3)[-1]))
     flatness = float(eig[0] / stiff) if stiff > 0 else float("nan")
     marks.append(("covariance", time.perf_counter()))
