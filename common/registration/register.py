@@ -40,7 +40,11 @@ Speed (bench/registration.py, 5,000 flies per population, CPU time on the shared
 (field build ≈11 ms — deposit, zero-padding-aware FFT, cell list —, lattice ≈2.5 ms, polish ≈1.5 ms,
 refine ≈5 ms, Hessian and covariance ≈5 ms), ≈33 ms with StereoModel (no FFT: lattice ≈9 ms on the
 wide local kernel, polish ≈6 ms, refine ≈13 ms), ≈62 ms for 6-DoF (3,375 lattice candidates).
-Before (same bench): 67, 99 and 196 ms.  What it took: vectorisable float32 near-field loops (see
+Before (same bench): 67, 99 and 196 ms.  The localiser's calls (≈2–3k flies against a ≤6k-point
+map, 0.25 m / 8° windows, StereoModel) took ≈37 ms on average, ≈24 ms since the lattice follows
+the window (StereoModel.lattice_step: 125 instead of 343 candidates), extra seeds stop in a basin
+already polished, and the planar flatness check reuses H's in-plane block (bench: StereoModel
+33 → 25 ms, paper's δ 26 → 23 ms).  What it took: vectorisable float32 near-field loops (see
 field.py), vectorised lattice poses, analytic planar pose Jacobians with a numba per-fly gradient,
 no input re-validation inside the optimiser, and a refine tolerance of 1e-3 of the window (1 mm on a
 1 m window; 1e-4 cost twice the evaluations for sub-millimetre changes).  Tried and dropped: a
@@ -601,7 +605,8 @@ class StereoModel:
     (LocalCorrelationField with cut-off `local_radius`) or "delta" (the paper's δ, weighted).
     lattice_step: coarse-lattice spacing in metres of fly motion (see _lattice_counts; None: the full
     `lattice` counts).  0.5 m, half the coarse kernel's 2 × local_radius cut-off: on the localiser's
-    replays the same estimates (within 0.1 mm on 98 % of the calls where both succeeded), ≈25 % faster.
+    replays the same estimates (within 0.1 mm on 98 % of the calls where both succeeded, the rest a
+    different minimum), the lattice stage ≈15 → ≈5 ms.
     """
     calib: StereoCalibration
     depth_range: tuple = (0.0, np.inf)
