@@ -46,8 +46,10 @@ the window (StereoModel.lattice_step: 125 instead of 343 candidates), extra seed
 already polished, and the planar flatness check reuses H's in-plane block; ≈20 ms since the refine
 starts from the polish's inverse-Hessian estimate (≈21 → 8 evaluations of the full objective; its
 steps are capped at half a lattice step so that estimate, from the smoother objective, cannot throw
-it into another basin).  Results moved by ≤ 2 mm on 95 % of those calls, and 1 in 106 went from
-ok to a boundary minimum.  Bench: StereoModel 33 → 21 ms, paper's δ 26 → 23–27 ms, same errors.  What it took: vectorisable float32 near-field loops (see
+it into another basin; a warm-started refine that ends on the window's edge is redone from the
+identity).  Results moved by ≤ 2 mm on 95 % of those calls (max 12 mm), none changed ok/failed;
+on the demo1 replay boundary-minimum rejections still rose from 35 to 53 of 1,200 updates (42 with
+the lattice change alone).  Bench: StereoModel 33 → 21 ms, paper's δ 26 → 23–27 ms, same errors.  What it took: vectorisable float32 near-field loops (see
 field.py), vectorised lattice poses, analytic planar pose Jacobians with a numba per-fly gradient,
 no input re-validation inside the optimiser, and a refine tolerance of 1e-3 of the window (1 mm on a
 1 m window; 1e-4 cost twice the evaluations for sub-millimetre changes).  Tried and dropped: a
@@ -502,8 +504,16 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     full = _Objective(fld, A[fine_idx], wa[fine_idx], pose, near=True, kind=objective)
     # the runner-up is worth refining only if, smoothed, it is already nearly as deep as the best
     rivals = [pv for pv in distinct[1:2] if pv[1] - distinct[0][1] < 3 * (1 - ambiguity_ratio) * contrast]
-    refined = [polish(full, p, 60, 1e-3, H0=hinvs[0] if hinvs else None, max_step=0.5 * step)
-               for p, _ in distinct[:1] + rivals]
+    def refine(p):
+        # warm start from the polish's curvature estimate; if that walks onto the window's edge (the
+        # smoother objective's curvature can send it along a flat valley), refine again from p
+        # with the identity, as before the warm start
+        if hinvs:
+            q, v = polish(full, p, 60, 1e-3, H0=hinvs[0], max_step=0.5 * step)
+            if not np.any(free & (np.abs(q - center) > 0.99 * half)):
+                return q, v
+        return polish(full, p, 60, 1e-3)
+    refined = [refine(p) for p, _ in distinct[:1] + rivals]
     refined.sort(key=lambda pv: pv[1])
     p_best, d_best = refined[0]
     evals += smooth.count + full.count
