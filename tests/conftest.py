@@ -34,3 +34,22 @@ def free_port() -> int:
 @pytest.fixture
 def zenoh_port() -> int:
     return free_port()
+
+
+@pytest.fixture(scope="session")
+def deep_street_views():
+    """(rig, true planar motion (x, z, θ), A, B): 3,000 flies each seen from two poses of the deep
+    synthetic street (independent populations), for the registration tests."""
+    import numpy as np
+
+    from common.geometry import make_transform, rot_y
+    from common.registration import scenes
+
+    rng = np.random.default_rng(21)
+    rig = scenes.deep_rig()
+    scene = scenes.street_scene(rng)
+    truth = np.array([-0.2, 0.9, np.deg2rad(-3.0)])
+    T2 = make_transform(rot_y(truth[2]), [truth[0], 0, truth[1]])
+    A, _, _ = scenes.observe(scene, np.eye(4), rig, 3000, rng)
+    B, _, _ = scenes.observe(scene, T2, rig, 3000, rng)
+    return rig, truth, A, B

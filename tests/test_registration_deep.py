@@ -2,9 +2,18 @@
 import numpy as np
 import pytest
 
-from common.geometry import R_BODY_OPTICAL, make_transform, rot_y
-from common.registration import (LocalCorrelationField, PopulationError, StereoModel, covisible_masks,
-                                 depth_sigma, depth_weights, footprint_weights, register_planar, scenes)
+from common.geometry import R_BODY_OPTICAL, make_transform
+from common.registration import (
+    LocalCorrelationField,
+    PopulationError,
+    StereoModel,
+    covisible_masks,
+    depth_sigma,
+    depth_weights,
+    footprint_weights,
+    register_planar,
+    scenes,
+)
 
 
 def test_depth_sigma_grows_with_depth_squared_and_weights_fall_off():
@@ -59,20 +68,8 @@ def test_local_correlation_peaks_at_alignment():
     assert c0 > fld.correlation(B + [0.2, 0, 0]) > fld.correlation(B + [0.6, 0, 0]) >= 0
 
 
-@pytest.fixture(scope="module")
-def two_views():
-    rng = np.random.default_rng(21)
-    rig = scenes.deep_rig()
-    scene = scenes.street_scene(rng)
-    truth = np.array([-0.2, 0.9, np.deg2rad(-3.0)])
-    T2 = make_transform(rot_y(truth[2]), [truth[0], 0, truth[1]])
-    A, _, _ = scenes.observe(scene, np.eye(4), rig, 3000, rng)
-    B, _, _ = scenes.observe(scene, T2, rig, 3000, rng)
-    return rig, truth, A, B
-
-
-def test_stereo_model_recovers_motion_between_independent_deep_views(two_views):
-    rig, truth, A, B = two_views
+def test_stereo_model_recovers_motion_between_independent_deep_views(deep_street_views):
+    rig, truth, A, B = deep_street_views
     res = register_planar(A, B, stereo=StereoModel(rig, depth_range=(2.0, 40.0)))
     assert res.ok, res.reason
     err = np.hypot(*(res.params[:2] - truth[:2]))
@@ -83,8 +80,8 @@ def test_stereo_model_recovers_motion_between_independent_deep_views(two_views):
     assert np.hypot(*(paper.params[:2] - truth[:2])) > err
 
 
-def test_stereo_model_in_the_body_frame_matches_the_optical_result(two_views):
-    rig, truth, A, B = two_views
+def test_stereo_model_in_the_body_frame_matches_the_optical_result(deep_street_views):
+    rig, truth, A, B = deep_street_views
     mounted = scenes.deep_rig()
     mounted.T_base_camera = make_transform(R_BODY_OPTICAL, [0.3, 0.0, 1.2])
     T_bc = mounted.T_base_camera
