@@ -425,10 +425,3 @@ class FlyLocaliser:
         if chi2 > c.gate_chi2:
             return None
         return post_cov @ info @ p, post_cov
-
-    # ------------------------------------------------------------------------------- export
-    def map_points(self) -> np.ndarray:
-        """All keyframe points in the map frame (for visualisation)."""
-        if not self.keyframes:
-            return np.zeros((0, 3))
-        return np.concatenate([transform_points(kf.T_map_base, kf.points.astype(np.float64)) for kf in self.keyframes])

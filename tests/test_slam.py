@@ -112,6 +112,12 @@ def room_points(rng, n):
     return pts
 
 
+def _flies(world, T, rng):
+    """(positions, fitness) of the flies a robot at T sees, every fly the same fitness."""
+    v = _view(world, T, rng)
+    return v, np.full(len(v), 0.5)
+
+
 def _view(world, T, rng):
     cam = seen_from(T, world)
     cam = cam[(cam[:, 2] < 8.0) & (np.abs(cam[:, 0]) < 0.7 * cam[:, 2])][:3000]   # a 70° field of view
@@ -125,9 +131,9 @@ def test_local_map_is_the_keyframes_that_look_the_same_way():
     world = room_points(rng, 60000)
     loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(local_keyframes=1))
     ahead, back = planar_pose(0.0, 0.0, 0.0), planar_pose(0.05, 0.0, np.pi)
-    loc.update(0, _view(world, ahead, rng), np.full(3000, 0.5), ahead, generation=500)
+    loc.update(0, *_flies(world, ahead, rng), ahead, generation=500)
     # Looking back the map does not cover the view: a keyframe is added even without a registration.
-    est = loc.update(20 * 10**9, _view(world, back, rng), np.full(3000, 0.5), back, generation=500)   # 9°/s
+    est = loc.update(20 * 10**9, *_flies(world, back, rng), back, generation=500)   # 9°/s
     assert est.keyframe_added and len(loc.keyframes) == 2
     chosen = loc.local_map(planar_pose(0.0, 0.0, np.pi))
     assert np.median(chosen[:, 0]) < 0     # the points behind the start (x < 0), not those ahead
@@ -141,13 +147,13 @@ def test_no_registration_while_turning_fast():
     rng = np.random.default_rng(4)
     world = room_points(rng, 60000)
     loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
-    loc.update(0, _view(world, planar_pose(0, 0, 0), rng), np.full(3000, 0.5), planar_pose(0, 0, 0), generation=500)
+    loc.update(0, *_flies(world, planar_pose(0, 0, 0), rng), planar_pose(0, 0, 0), generation=500)
     T = planar_pose(0.0, 0.0, np.deg2rad(9.0))          # 9° in 0.1 s: 90°/s
-    est = loc.update(10**8, _view(world, T, rng), np.full(3000, 0.5), T, generation=500)
+    est = loc.update(10**8, *_flies(world, T, rng), T, generation=500)
     assert not est.registered and est.status.startswith("odometry only: turning at 90°/s")
     assert not est.keyframe_added and np.allclose(est.T_map_base, T)
     T2 = planar_pose(0.0, 0.0, np.deg2rad(9.5))         # then slowly: registered again
-    est = loc.update(2 * 10**8, _view(world, T2, rng), np.full(3000, 0.5), T2, generation=500)
+    est = loc.update(2 * 10**8, *_flies(world, T2, rng), T2, generation=500)
     assert est.status == "ok"
 
 
