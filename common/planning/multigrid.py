@@ -43,69 +43,64 @@ from . import harmonic as hk
 
 @njit(cache=True)
 def fine_system(state, s):
-    """Level-0 operator from the padded state and log scale: (cells, indptr, indices, vals, f, cy, cx).
+    """Level-0 operator from the padded state and log scale: (cells, nb, w4, f, ip, ind, cy, cx).
 
     ``cells`` are the flat indices of the ACTIVE cells (ascending, = compact numbering), ``cy, cx``
-    their padded row / column."""
+    their padded row / column.  The operator is stored twice: as a fixed-width (ELL) table — ``nb[i, d]``
+    the compact index of the neighbour in direction d (east, west, south, north), ``w4[i, d]`` its weight
+    ``exp(s_j - s_i) / 4``, a missing neighbour pointing at i itself with weight 0 — which the cycle's
+    level-0 kernels run on (half the time of CSR: no row pointers, a fixed four-term sum), and as the
+    CSR pattern ``ip, ind`` (the ELL entries that are not missing, in the same order) from which the
+    hierarchy is built.  One exponential per edge between ACTIVE cells: the east / south weight, whose
+    reciprocal is the neighbour's west / north weight."""
     h, w = state.shape
     stf = state.ravel()
     sf = s.ravel()
-    comp = np.full(h * w, -1, dtype=np.int64)
+    comp = np.empty(h * w, dtype=np.int64)
     n = 0
     for i in range(h * w):
-        if stf[i] == hk.ACTIVE:
-            comp[i] = n
-            n += 1
+        comp[i] = n
+        n += stf[i] == hk.ACTIVE
     cells = np.empty(n, dtype=np.int64)
-    for i in range(h * w):
-        if comp[i] >= 0:
-            cells[comp[i]] = i
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    indices = np.empty(4 * n, dtype=np.int64)
-    vals = np.empty(4 * n)
-    f = np.zeros(n)
     cy = np.empty(n, dtype=np.int64)
     cx = np.empty(n, dtype=np.int64)
-    # exp(s_j - s_i) once per edge (its reciprocal serves the opposite direction): two exponentials
-    # per cell instead of four.
-    ex = np.zeros(h * w)
-    ey = np.zeros(h * w)
-    for k in range(n):
-        i = cells[k]
-        if stf[i + 1] != hk.BLOCKED:
-            ex[i] = np.exp(sf[i + 1] - sf[i])
-        if stf[i + w] != hk.BLOCKED:
-            ey[i] = np.exp(sf[i + w] - sf[i])
-        if stf[i - 1] == hk.TARGET:
-            ex[i - 1] = np.exp(sf[i] - sf[i - 1])
-        if stf[i - w] == hk.TARGET:
-            ey[i - w] = np.exp(sf[i] - sf[i - w])
+    nb = np.empty((n, 4), dtype=np.int64)
+    w4 = np.empty((n, 4))
+    f = np.empty(n)
+    ip = np.empty(n + 1, dtype=np.int64)
+    ind = np.empty(4 * n, dtype=np.int64)
+    ip[0] = 0
     m = 0
-    for k in range(n):
-        i = cells[k]
-        cy[k] = i // w
-        cx[k] = i - cy[k] * w
-        for d in range(4):
-            if d == 0:
-                j = i + 1
-                c = 0.25 * ex[i]
-            elif d == 1:
-                j = i - 1
-                c = 0.25 / ex[i - 1] if ex[i - 1] > 0.0 else 0.0
-            elif d == 2:
-                j = i + w
-                c = 0.25 * ey[i]
-            else:
-                j = i - w
-                c = 0.25 / ey[i - w] if ey[i - w] > 0.0 else 0.0
-            if stf[j] == hk.ACTIVE:
-                indices[m] = comp[j]
-                vals[m] = c
-                m += 1
-            elif stf[j] == hk.TARGET:
-                f[k] += c
-        indptr[k + 1] = m
-    return cells, indptr, indices[:m].copy(), vals[:m].copy(), f, cy, cx
+    k = 0
+    for y in range(1, h - 1):
+        for x in range(1, w - 1):
+            i = y * w + x
+            if stf[i] != hk.ACTIVE:
+                continue
+            cells[k] = i
+            cy[k] = y
+            cx[k] = x
+            f[k] = 0.0
+            for d in range(4):
+                j = i + 1 if d == 0 else (i - 1 if d == 1 else (i + w if d == 2 else i - w))
+                st = stf[j]
+                if st == hk.ACTIVE:
+                    kj = comp[j]
+                    nb[k, d] = kj
+                    if d == 0 or d == 2:        # later in the order: set both directions of the edge
+                        e = np.exp(sf[j] - sf[i])
+                        w4[k, d] = 0.25 * e
+                        w4[kj, d + 1] = 0.25 / e
+                    ind[m] = kj
+                    m += 1
+                else:
+                    nb[k, d] = k
+                    w4[k, d] = 0.0
+                    if st == hk.TARGET:
+                        f[k] += 0.25 * np.exp(sf[j] - sf[i])
+            k += 1
+            ip[k] = m
+    return cells, nb, w4, f, ip, ind[:m].copy(), cy, cx
 
 
 @njit(cache=True)
@@ -358,6 +353,126 @@ def _level_scales_into(s, agg, E, S):
 
 
 @njit(cache=True)
+def _fine_gs(x, nb, w4, f, forward):
+    """One Gauss-Seidel sweep of level 0 (dg = 1) on its ELL table."""
+    n = x.size
+    if forward:
+        for i in range(n):
+            x[i] = (f[i] + w4[i, 0] * x[nb[i, 0]] + w4[i, 1] * x[nb[i, 1]] + w4[i, 2] * x[nb[i, 2]]
+                    + w4[i, 3] * x[nb[i, 3]])
+    else:
+        for i in range(n - 1, -1, -1):
+            x[i] = (f[i] + w4[i, 0] * x[nb[i, 0]] + w4[i, 1] * x[nb[i, 1]] + w4[i, 2] * x[nb[i, 2]]
+                    + w4[i, 3] * x[nb[i, 3]])
+
+
+@njit(cache=True)
+def fine_residual(x, nb, w4, f):
+    """``relative_residual`` of level 0: max |f + W x - x| / x."""
+    worst = 0.0
+    for i in range(x.size):
+        acc = (f[i] + w4[i, 0] * x[nb[i, 0]] + w4[i, 1] * x[nb[i, 1]] + w4[i, 2] * x[nb[i, 2]]
+               + w4[i, 3] * x[nb[i, 3]] - x[i])
+        worst = max(worst, abs(acc) / x[i])
+    return worst
+
+
+@njit(cache=True)
+def fine_scales(s, agg, nc, w4, f):
+    """Per-cell constants of ``_fine_coarse_operator``, fixed until the next rebase: (E, S) of
+    ``level_scales`` and ``C4 = E^2 w4``, ``D = E^2`` (dg = 1), ``G = E^2 f``."""
+    E, S = level_scales(s, agg, nc)
+    n = s.size
+    C4 = np.empty((n, 4))
+    D = np.empty(n)
+    G = np.empty(n)
+    for i in range(n):
+        e2 = E[i] * E[i]
+        D[i] = e2
+        G[i] = e2 * f[i]
+        for d in range(4):
+            C4[i, d] = e2 * w4[i, d]
+    return E, S, C4, D, G
+
+
+@njit(cache=True)
+def _fine_coarse_operator(x, nb, C4, D, G, E, S, agg, emap4, cptr, sc, dgc, vc, fc):
+    """``_coarse_operator_scaled`` for level 0 in one pass: with ``g_i = (E_i x_i / m_a)^2`` the
+    contributions ``g_i dg_i``, ``g_i f_i / x_i`` and ``g_i w_ij x_j / x_i`` are ``D_i x_i^2``,
+    ``G_i x_i`` and ``C4_ij x_i x_j`` over ``m_a^2``, and ``m_a`` (max of E x over the aggregate) is
+    common to a coarse row, so it is divided out per row at the end: no division per cell, no
+    separate pass for the maxima."""
+    nc = sc.size
+    m = np.zeros(nc)
+    dgc[:] = 0.0
+    fc[:] = 0.0
+    vc[:] = 0.0
+    for i in range(x.size):
+        a = agg[i]
+        xi = x[i]
+        u = E[i] * xi
+        if u > m[a]:
+            m[a] = u
+        dgc[a] += D[i] * xi * xi
+        fc[a] += G[i] * xi
+        for d in range(4):
+            c = C4[i, d] * xi * x[nb[i, d]]
+            k = emap4[i, d]
+            if k < 0:
+                dgc[a] -= c
+            else:
+                vc[k] += c
+    for a in range(nc):
+        inv = 1.0 / (m[a] * m[a])
+        dgc[a] *= inv
+        fc[a] *= inv
+        for k in range(cptr[a], cptr[a + 1]):
+            vc[k] *= inv
+        sc[a] = S[a] + np.log(m[a])
+
+
+@njit(cache=True)
+def _over_correct(q, over):
+    """The coarse factors' over-correction ``q ** over`` in place (clipped to e^OVER_CLIP outside the
+    linear band); returns whether every factor was within ``exp(+-LINEAR_BAND)`` of 1."""
+    hi = np.exp(LINEAR_BAND)
+    lo = 1.0 / hi
+    linear = True
+    for a in range(q.size):
+        if q[a] > hi or q[a] < lo:
+            linear = False
+            break
+    if over != 1.0:
+        if linear:
+            if over == 2.0:
+                for a in range(q.size):
+                    q[a] *= q[a]
+            else:
+                for a in range(q.size):
+                    q[a] = q[a] ** over
+        elif OVER_CLIP > 0.0:
+            for a in range(q.size):
+                q[a] *= np.exp(min(max((over - 1.0) * np.log(q[a]), -OVER_CLIP), OVER_CLIP))
+    return linear
+
+
+@njit(cache=True)
+def ell_emap(nb, emap):
+    """``coarse_pattern``'s entry map moved from level 0's CSR entries to its ELL slots (-1: missing
+    neighbour or same aggregate, i.e. the diagonal)."""
+    n = nb.shape[0]
+    out = np.full((n, 4), -1, dtype=np.int64)
+    e = 0
+    for i in range(n):
+        for d in range(4):
+            if nb[i, d] != i:
+                if emap.size:
+                    out[i, d] = emap[e]
+                e += 1
+    return out
+
+
+@njit(cache=True)
 def _dense_solve(dg, ip, ind, vals, f):
     """Gaussian elimination without pivoting (an M-matrix needs none) of the coarsest level."""
     n = dg.size
@@ -392,9 +507,9 @@ def _wdot(a, b, w):
 
 
 @njit(cache=True)
-def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, E0, S0, EB, SB, scaled):
-    """Start one repetition at level l: remember x, pre-smooth, and pose the coarse problem for the
-    factor q (level l+1's buffers, q = 1)."""
+def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, EB, SB, scaled):
+    """Start one repetition at coarse level l >= 1: remember x, pre-smooth, and pose the coarse problem
+    for the factor q (level l+1's buffers, q = 1)."""
     n, no, eo = NN[l], NO[l], EO[l]
     nc, nco, eoc = NN[l + 1], NO[l + 1], EO[l + 1]
     ip = IP[PO[l]:PO[l] + n + 1]
@@ -409,9 +524,7 @@ def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, 
     agg = AGG[no:no + n]
     emap = EMAP[eo:eo + NNZ[l]]
     out = (S[nco:nco + nc], DG[nco:nco + nc], VALS[eoc:eoc + NNZ[l + 1]], F[nco:nco + nc])
-    if l == 0 and E0.size == n:
-        _coarse_operator_scaled(x, E0, S0, dg, ip, ind, vals, f, agg, emap, out[0], out[1], out[2], out[3])
-    elif scaled:
+    if scaled:
         _coarse_operator_scaled(x, EB[no:no + n], SB[nco:nco + nc], dg, ip, ind, vals, f, agg, emap,
                                 out[0], out[1], out[2], out[3])
     else:
@@ -434,24 +547,13 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
     vals = VALS[eo:eo + NNZ[l]]
     agg = AGG[no:no + n]
     q = X[nco:nco + nc]
-    hi = np.exp(LINEAR_BAND)
-    lo = 1.0 / hi
     # Over-correction and the Krylov combination rest on the linear picture (corrections small relative
     # to x); far from the solution (a cold start: factors of e^30) they diverge, so both are used only
     # when every factor of this repetition is within LINEAR_BAND of 1 (over-correction outside it is
     # clipped to e^OVER_CLIP).
-    linear = True
-    for a in range(nc):
-        if q[a] > hi or q[a] < lo:
-            linear = False
-            break
-    if over != 1.0:
-        if linear:
-            for a in range(nc):
-                q[a] = q[a] ** over
-        elif OVER_CLIP > 0.0:
-            for a in range(nc):
-                q[a] *= np.exp(min(max((over - 1.0) * np.log(q[a]), -OVER_CLIP), OVER_CLIP))
+    linear = _over_correct(q, over)
+    hi = np.exp(LINEAR_BAND)
+    lo = 1.0 / hi
     for i in range(n):
         x[i] *= q[agg[i]]
     for _ in range(nu):
@@ -495,22 +597,31 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
 
 @njit(cache=True)
 def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, EB, SB,
-           over_correction, kdepth, nu, E0, S0):
+           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, C0, D0, G0, prev):
     """One cycle from the fine level, written as a loop over an explicit level pointer (numba cannot
-    cache a recursive function).  Level 0 and levels deeper than ``kdepth`` do one repetition: pre-smooth,
-    coarse factor q solved at the next level, ``x *= q ** over_correction``, post-smooth.  Levels
-    1..kdepth are K-cycles: two repetitions (no over-correction) combined by two GCR steps that minimise
-    the relative residual, which makes the under-sized piecewise-constant corrections exact in their
-    span.  The coarsest level is solved directly.  All levels' arrays live in the flat buffers at
-    offsets NO (nodes) / EO (entries)."""
+    cache a recursive function); returns the largest relative change of phi it made.  Level 0 (its own
+    ELL kernels, ``nb, w4``) and levels deeper than ``kdepth`` do one repetition: pre-smooth, coarse
+    factor q solved at the next level, ``x *= q ** over_correction``, post-smooth.  Levels 1..kdepth are
+    K-cycles: two repetitions (no over-correction) combined by two GCR steps that minimise the relative
+    residual, which makes the under-sized piecewise-constant corrections exact in their span.  The
+    coarsest level is solved directly.  All levels' arrays live in the flat buffers at offsets NO
+    (nodes) / EO (entries); level 0's operator is only in ``nb, w4`` (its VALS slice is scratch)."""
+    n0 = NN[0]
+    x0 = X[:n0]
+    prev[:] = x0
     rep = np.zeros(L, dtype=np.int64)
     state = np.zeros((L, 2))
     if L == 1:
-        n = NN[0]
-        sol = _dense_solve(DG[:n], IP[:n + 1], IND[:NNZ[0]], VALS[:NNZ[0]], F[:n])
-        for i in range(n):
+        m = 0
+        for i in range(n0):
+            for d in range(4):
+                if nb[i, d] != i:
+                    VALS[m] = w4[i, d]
+                    m += 1
+        sol = _dense_solve(DG[:n0], IP[:n0 + 1], IND[:NNZ[0]], VALS[:NNZ[0]], F[:n0])
+        for i in range(n0):
             X[i] = max(sol[i], 1e-300)
-        return
+        return _max_rel_change(x0, prev)
     l = 0
     entering = True
     while True:
@@ -537,17 +648,32 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
                 # a log and an exp per cell and repetition in _coarse_operator (~6 % of a cycle)
                 nco = NO[l + 1]
                 _level_scales_into(S[no:no + n], AGG[no:no + n], EB[no:no + n], SB[nco:nco + NN[l + 1]])
+        elif l == 0:
+            q = X[n0:n0 + NN[1]]
+            _over_correct(q, over_correction)
+            agg0 = AGG[:n0]
+            for i in range(n0):
+                x0[i] *= q[agg0[i]]
+            for _ in range(nu):
+                _fine_gs(x0, nb, w4, F[:n0], False)
+            return _max_rel_change(x0, prev)
         else:
             _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1,
                     state[l], 1.0 if krylov else over_correction, krylov, nu)
             rep[l] += 1
             if rep[l] >= (2 if krylov else 1):
-                if l == 0:
-                    return
                 l -= 1
                 entering = False
                 continue
-        _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, E0, S0, EB, SB, krylov)
+        if l == 0:
+            for _ in range(nu):
+                _fine_gs(x0, nb, w4, F[:n0], True)
+            n1, e1 = NN[1], EO[1]
+            _fine_coarse_operator(x0, nb, C0, D0, G0, E0, S0, AGG[:n0], emap4, IP[PO[1]:PO[1] + n1 + 1],
+                                  S[n0:n0 + n1], DG[n0:n0 + n1], VALS[e1:e1 + NNZ[1]], F[n0:n0 + n1])
+            X[n0:n0 + n1] = 1.0
+        else:
+            _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, EB, SB, krylov)
         l += 1
         entering = True
 
@@ -571,15 +697,15 @@ def _log_extent(x):
 
 
 @njit(cache=True)
-def rebase(x, s, ip, ind, vals, f):
-    """Fold the relative factors into the log scale: ``s += log x``, the operator rescaled to match
-    (``vals_ij *= x_j / x_i``, ``f_i /= x_i``), ``x = 1``.  No exponentials."""
+def rebase(x, s, nb, w4, f):
+    """Fold the relative factors into the log scale: ``s += log x``, level 0's operator rescaled to
+    match (``w_ij *= x_j / x_i``, ``f_i /= x_i``), ``x = 1``.  No exponentials."""
     n = x.size
     for i in range(n):
-        xi = x[i]
-        for e in range(ip[i], ip[i + 1]):
-            vals[e] *= x[ind[e]] / xi
-        f[i] /= xi
+        inv = 1.0 / x[i]
+        for d in range(4):
+            w4[i, d] *= x[nb[i, d]] * inv
+        f[i] *= inv
     for i in range(n):
         s[i] += np.log(x[i])
         x[i] = 1.0
@@ -591,9 +717,10 @@ class LogFieldSolver:
     ``s`` (compact log scale) and ``x`` (relative factor) hold the iterate: log phi = s + log x."""
 
     def __init__(self, state: np.ndarray, s_padded: np.ndarray, coarsest: int = 48):
-        cells, ip, ind, vals, f, cy, cx = fine_system(state, s_padded)
-        self.cells, self.ip, self.ind = cells, ip, ind
+        cells, nb, w4, f, ip, ind, cy, cx = fine_system(state, s_padded)
+        self.cells, self.nb, self.w4 = cells, nb, w4
         self.hier = Hierarchy(ip, ind, cy, cx, coarsest)
+        self.emap4 = ell_emap(nb, self.hier.emap[:ind.size] if self.hier.levels > 1 else self.hier.emap)
         n, nodes, entries = cells.size, int(self.hier.n.sum()), int(self.hier.nnz.sum())
         # Every level's arrays in flat buffers (offsets in the hierarchy); level 0's are slices of them,
         # taken on access (stored views would come apart under copy.deepcopy).
@@ -603,11 +730,9 @@ class LogFieldSolver:
         self.s[:] = s_padded.ravel()[cells]
         self.x[:] = 1.0
         self.f[:] = f
-        self.vals[:] = vals
-        self._dg[:] = 1.0
-        self._res = np.empty(n)
+        self._buf["DG"][:n] = 1.0
         self._prev = np.empty(n)
-        self._E = self._S = None          # fine-level scales (level_scales), valid until the next rebase
+        self._scales = None     # level-0 constants of the coarse operator (fine_scales), until the next rebase
 
     @property
     def s(self) -> np.ndarray:
@@ -624,40 +749,31 @@ class LogFieldSolver:
         return self._buf["F"][:self.cells.size]
 
     @property
-    def _dg(self) -> np.ndarray:
-        return self._buf["DG"][:self.cells.size]
-
-    @property
-    def vals(self) -> np.ndarray:
-        return self._vals[:self.ind.size]
-
-    @property
     def size(self) -> int:
         return int(self.cells.size)
 
     def cycle(self, over_correction: float, smoothing: int, krylov_levels: int) -> float:
         """One fine-level cycle; returns the largest relative change of phi it made."""
         L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP = self.hier.arrays()
-        if self._E is None:
-            self._E, self._S = (level_scales(self.s, AGG[:NN[0]], NN[1]) if L > 1
-                                else (np.zeros(0), np.zeros(0)))
-        self._prev[:] = self.x
+        if self._scales is None:
+            if L > 1:
+                self._scales = fine_scales(self.s, AGG[:NN[0]], NN[1], self.w4, self.f)
+            else:
+                self._scales = (np.zeros(0), np.zeros(0), np.zeros((0, 4)), np.zeros(0), np.zeros(0))
         b = self._buf
-        _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"], b["X"], b["XS"],
-               b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], b["E"], b["SA"], float(over_correction),
-               int(krylov_levels), int(smoothing), self._E, self._S)
-        return float(_max_rel_change(self.x, self._prev)) if self.size else 0.0
+        return float(_cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"],
+                            b["X"], b["XS"], b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], b["E"], b["SA"],
+                            float(over_correction), int(krylov_levels), int(smoothing), self.nb, self.w4,
+                            self.emap4, *self._scales, self._prev))
 
     def residual(self) -> float:
-        """Largest relative residual (see ``relative_residual``)."""
-        if self.size == 0:
-            return 0.0
-        return float(relative_residual(self.x, self._dg, self.ip, self.ind, self.vals, self.f, self._res))
+        """Largest relative residual of level 0 (see ``relative_residual``)."""
+        return float(fine_residual(self.x, self.nb, self.w4, self.f)) if self.size else 0.0
 
     def drift(self) -> float:
         """Largest |log x|: how far the factors have moved from 1 since the last ``rebase``."""
         return float(_log_extent(self.x)) if self.size else 0.0
 
     def rebase(self) -> None:
-        rebase(self.x, self.s, self.ip, self.ind, self.vals, self.f)
-        self._E = self._S = None
+        rebase(self.x, self.s, self.nb, self.w4, self.f)
+        self._scales = None
