@@ -257,12 +257,14 @@ def relative_residual(x, dg, ip, ind, vals, f, out):
 
 
 @njit(cache=True)
-def _matvec(d, dg, ip, ind, vals, out):
-    for i in range(d.size):
-        acc = dg[i] * d[i]
+def _residual_and_weights(x, dg, ip, ind, vals, f, r, w):
+    """``r = f - M x`` and the GCR weights ``w = 1 / dg^2`` (residuals relative to the diagonal)."""
+    for i in range(x.size):
+        acc = f[i] - dg[i] * x[i]
         for e in range(ip[i], ip[i + 1]):
-            acc -= vals[e] * d[ind[e]]
-        out[i] = acc
+            acc += vals[e] * x[ind[e]]
+        r[i] = acc
+        w[i] = 1.0 / (dg[i] * dg[i])
 
 
 @njit(cache=True)
@@ -296,36 +298,39 @@ def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
 
 
 @njit(cache=True)
-def _coarse_operator_scaled(x, E, S, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
-    """``_coarse_operator`` for a level whose log scale is fixed between calls (the fine level): with
-    ``E_i = exp(s_i - S_a)`` and ``S_a`` = max s over aggregate a precomputed (``level_scales``),
-    ``phi_i / max phi = E_i x_i / max(E x)`` needs no exponential or logarithm per cell."""
-    n = x.size
+def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc, dgc, vc, fc):
+    """``_coarse_operator`` for a level whose log scale is fixed between calls, in one pass: with
+    ``E2_i = exp(2 (s_i - S_a))`` and ``S_a`` = max s over aggregate a precomputed (``_level_scales_into``),
+    ``g_i = (phi_i / max phi)^2 = E2_i x_i^2 / m_a`` where ``m_a = max(E2 x^2)`` is common to coarse row
+    a, so it is divided out per row at the end: no exponential, logarithm or division per cell."""
     nc = sc.size
     m = np.zeros(nc)
-    for i in range(n):
-        u = E[i] * x[i]
-        if u > m[agg[i]]:
-            m[agg[i]] = u
     dgc[:] = 0.0
     fc[:] = 0.0
     vc[:] = 0.0
-    for i in range(n):
+    for i in range(x.size):
         a = agg[i]
-        rel = E[i] * x[i] / m[a]
-        g = rel * rel
-        inv = 1.0 / x[i]
-        dgc[a] += g * dg[i]
-        fc[a] += g * f[i] * inv
+        xi = x[i]
+        ex = E2[i] * xi
+        u = ex * xi
+        if u > m[a]:
+            m[a] = u
+        dgc[a] += u * dg[i]
+        fc[a] += ex * f[i]
         for e in range(ip[i], ip[i + 1]):
-            c = g * vals[e] * x[ind[e]] * inv
+            c = ex * vals[e] * x[ind[e]]
             k = emap[e]
             if k < 0:
                 dgc[a] -= c
             else:
                 vc[k] += c
     for a in range(nc):
-        sc[a] = S[a] + np.log(m[a])
+        inv = 1.0 / m[a]
+        dgc[a] *= inv
+        fc[a] *= inv
+        for k in range(cptr[a], cptr[a + 1]):
+            vc[k] *= inv
+        sc[a] = S[a] + 0.5 * np.log(m[a])
 
 
 @njit(cache=True)
@@ -342,14 +347,14 @@ def level_scales(s, agg, nc):
 
 
 @njit(cache=True)
-def _level_scales_into(s, agg, E, S):
-    """``level_scales`` written into (E, S)."""
+def _level_scales_into(s, agg, E2, S):
+    """``level_scales`` written into (E2, S), squared: ``E2_i = exp(2 (s_i - S_a))``."""
     S[:] = -np.inf
     for i in range(s.size):
         if s[i] > S[agg[i]]:
             S[agg[i]] = s[i]
     for i in range(s.size):
-        E[i] = np.exp(s[i] - S[agg[i]])
+        E2[i] = np.exp(2.0 * (s[i] - S[agg[i]]))
 
 
 @njit(cache=True)
@@ -499,11 +504,14 @@ def _dense_solve(dg, ip, ind, vals, f):
 
 
 @njit(cache=True)
-def _wdot(a, b, w):
-    acc = 0.0
-    for i in range(a.size):
-        acc += a[i] * b[i] * w[i]
-    return acc
+def _gs_saving(x, xs, dg, ip, ind, vals, f):
+    """Forward Gauss-Seidel sweep that first copies every x_i to xs (the repetition's starting point)."""
+    for i in range(x.size):
+        xs[i] = x[i]
+        acc = f[i]
+        for e in range(ip[i], ip[i + 1]):
+            acc += vals[e] * x[ind[e]]
+        x[i] = acc / dg[i]
 
 
 @njit(cache=True)
@@ -518,15 +526,18 @@ def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, 
     dg = DG[no:no + n]
     vals = VALS[eo:eo + NNZ[l]]
     f = F[no:no + n]
-    XS[no:no + n] = x
-    for _ in range(nu):
+    if nu > 0:
+        _gs_saving(x, XS[no:no + n], dg, ip, ind, vals, f)
+    else:
+        XS[no:no + n] = x
+    for _ in range(nu - 1):
         _gs(x, dg, ip, ind, vals, f, True)
     agg = AGG[no:no + n]
     emap = EMAP[eo:eo + NNZ[l]]
     out = (S[nco:nco + nc], DG[nco:nco + nc], VALS[eoc:eoc + NNZ[l + 1]], F[nco:nco + nc])
     if scaled:
         _coarse_operator_scaled(x, EB[no:no + n], SB[nco:nco + nc], dg, ip, ind, vals, f, agg, emap,
-                                out[0], out[1], out[2], out[3])
+                                IP[PO[l + 1]:PO[l + 1] + nc + 1], out[0], out[1], out[2], out[3])
     else:
         _coarse_operator(x, S[no:no + n], dg, ip, ind, vals, f, agg, emap, out[0], out[1], out[2], out[3])
     X[nco:nco + nc] = 1.0
@@ -562,17 +573,36 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
         return
     r, w = R[no:no + n], W[no:no + n]
     d, d1, v, v1 = D[no:no + n], D1[no:no + n], V[no:no + n], V1[no:no + n]
+    # v = M d for d = x - xs (formed on the fly), with the linear-band check and the dot products of
+    # the GCR step, in one pass
+    has1 = state[0] > 0.0
+    rv = 0.0
+    vv = 0.0
+    vv1 = 0.0
     for i in range(n):
-        d[i] = x[i] - xs[i]
+        di = x[i] - xs[i]
         if x[i] > hi * xs[i] or x[i] < lo * xs[i]:
             linear = False
+            break
+        d[i] = di
+        acc = dg[i] * di
+        for e in range(ip[i], ip[i + 1]):
+            j = ind[e]
+            acc -= vals[e] * (x[j] - xs[j])
+        v[i] = acc
+        wi = w[i]
+        rv += r[i] * acc * wi
+        vv += acc * acc * wi
+        if has1:
+            vv1 += acc * v1[i] * wi
     if not linear:
         relative_residual(x, dg, ip, ind, vals, f, r)
         state[0] = 0.0
         return
-    _matvec(d, dg, ip, ind, vals, v)
-    if state[0] > 0.0:
-        b = _wdot(v, v1, w) / max(state[1], 1e-300)
+    if has1:
+        # orthogonalise against the previous repetition's direction (dot products recomputed from the
+        # orthogonalised vectors, not by expanding them: v is often nearly parallel to v1)
+        b = vv1 / max(state[1], 1e-300)
         rv = 0.0
         vv = 0.0
         for i in range(n):
@@ -580,17 +610,14 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
             v[i] -= b * v1[i]
             rv += r[i] * v[i] * w[i]
             vv += v[i] * v[i] * w[i]
-    else:
-        rv = _wdot(r, v, w)
-        vv = _wdot(v, v, w)
     a = rv / max(vv, 1e-300)
     for i in range(n):
         # GCR step; positivity kept (phi > 0 on every connected cell), the clamp is never active near
         # convergence
         x[i] = max(xs[i] + a * d[i], 0.05 * xs[i])
         r[i] -= a * v[i]
-    d1[:] = d
-    v1[:] = v
+        d1[i] = d[i]
+        v1[i] = v[i]
     state[0] = 1.0
     state[1] = vv
 
@@ -640,10 +667,9 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             state[l, 0] = 0.0
             if krylov:
                 n, no, eo = NN[l], NO[l], EO[l]
-                relative_residual(X[no:no + n], DG[no:no + n], IP[PO[l]:PO[l] + n + 1], IND[eo:eo + NNZ[l]],
-                                  VALS[eo:eo + NNZ[l]], F[no:no + n], R[no:no + n])
-                for i in range(n):
-                    W[no + i] = 1.0 / (DG[no + i] * DG[no + i])
+                _residual_and_weights(X[no:no + n], DG[no:no + n], IP[PO[l]:PO[l] + n + 1],
+                                      IND[eo:eo + NNZ[l]], VALS[eo:eo + NNZ[l]], F[no:no + n], R[no:no + n],
+                                      W[no:no + n])
                 # the level's log scale is fixed during its two repetitions: exp(s - max s) once, not
                 # a log and an exp per cell and repetition in _coarse_operator (~6 % of a cycle)
                 nco = NO[l + 1]
