@@ -78,7 +78,7 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             T_odom_base = odom.at(stamp)
             T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera
             if T_odom_cam is not None and last_T_odom_cam is not None:
-                evolver.move_flies(invert(T_odom_cam) @ last_T_odom_cam)
+                evolver.move_flies(invert(T_odom_cam) @ last_T_odom_cam, rescore=False)   # set_images re-scores
             last_T_odom_cam = T_odom_cam
             evolver.set_images(left, right)
             evolver.step(generations_per_frame)

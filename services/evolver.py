@@ -163,7 +163,7 @@ def body(node, args) -> int:
                 T_odom_base = inputs.odom.at(frame.header.stamp_ns)
             T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera
             if T_odom_cam is not None and last_T_odom_cam is not None:
-                evolver.move_flies(invert(T_odom_cam) @ last_T_odom_cam)   # T_new_old
+                evolver.move_flies(invert(T_odom_cam) @ last_T_odom_cam, rescore=False)   # T_new_old; set_images re-scores
             elif last_T_odom_cam is not None:
                 node.counters.add("frames_without_odometry")
             last_T_odom_cam = T_odom_cam if T_odom_cam is not None else last_T_odom_cam
