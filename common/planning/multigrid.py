@@ -390,58 +390,48 @@ def fine_residual(x, nb, w4, f):
 
 
 @njit(cache=True)
-def fine_scales(s, agg, nc, w4, f):
-    """Per-cell constants of ``_fine_coarse_operator``, fixed until the next rebase: (E, S) of
-    ``level_scales`` and ``C4 = E^2 w4``, ``D = E^2`` (dg = 1), ``G = E^2 f``."""
-    E, S = level_scales(s, agg, nc)
-    n = s.size
-    C4 = np.empty((n, 4))
-    D = np.empty(n)
-    G = np.empty(n)
-    for i in range(n):
-        e2 = E[i] * E[i]
-        D[i] = e2
-        G[i] = e2 * f[i]
-        for d in range(4):
-            C4[i, d] = e2 * w4[i, d]
-    return E, S, C4, D, G
+def fine_scales(s, agg, nc):
+    """(E2, S) of level 0, fixed until the next rebase: ``S_a`` = max s over aggregate a and
+    ``E2_i = exp(2 (s_i - S_a))`` (see ``_coarse_operator_scaled``)."""
+    S = np.full(nc, -np.inf)
+    E2 = np.empty(s.size)
+    _level_scales_into(s, agg, E2, S)
+    return E2, S
 
 
 @njit(cache=True)
-def _fine_coarse_operator(x, nb, C4, D, G, E, S, agg, emap4, cptr, sc, dgc, vc, fc):
-    """``_coarse_operator_scaled`` for level 0 in one pass: with ``g_i = (E_i x_i / m_a)^2`` the
-    contributions ``g_i dg_i``, ``g_i f_i / x_i`` and ``g_i w_ij x_j / x_i`` are ``D_i x_i^2``,
-    ``G_i x_i`` and ``C4_ij x_i x_j`` over ``m_a^2``, and ``m_a`` (max of E x over the aggregate) is
-    common to a coarse row, so it is divided out per row at the end: no division per cell, no
-    separate pass for the maxima."""
+def _fine_restrict(x, nb, w4, f, E2, S, agg, emap4, cptr, sc, dgc, vc, fc):
+    """Galerkin operator of level 1 from level 0 (``_coarse_operator_scaled`` with dg = 1 on the ELL
+    table), written to (sc, dgc, vc, fc)."""
     nc = sc.size
     m = np.zeros(nc)
     dgc[:] = 0.0
     fc[:] = 0.0
     vc[:] = 0.0
-    for i in range(x.size):
-        a = agg[i]
-        xi = x[i]
-        u = E[i] * xi
+    for p in range(x.size):
+        a = agg[p]
+        xp = x[p]
+        ex = E2[p] * xp
+        u = ex * xp
         if u > m[a]:
             m[a] = u
-        dsum = D[i] * xi * xi           # summed in a register (see _coarse_operator_scaled)
+        dsum = u                  # the diagonal's share summed in a register (see _coarse_operator_scaled)
         for d in range(4):
-            c = C4[i, d] * xi * x[nb[i, d]]
-            k = emap4[i, d]
+            c = ex * w4[p, d] * x[nb[p, d]]
+            k = emap4[p, d]
             if k < 0:
                 dsum -= c
             else:
                 vc[k] += c
         dgc[a] += dsum
-        fc[a] += G[i] * xi
+        fc[a] += ex * f[p]
     for a in range(nc):
-        inv = 1.0 / (m[a] * m[a])
+        inv = 1.0 / m[a]
         dgc[a] *= inv
         fc[a] *= inv
         for k in range(cptr[a], cptr[a + 1]):
             vc[k] *= inv
-        sc[a] = S[a] + np.log(m[a])
+        sc[a] = S[a] + 0.5 * np.log(m[a])
 
 
 @njit(cache=True)
@@ -633,7 +623,7 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
 
 @njit(cache=True)
 def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, EB, SB,
-           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, C0, D0, G0, prev):
+           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev):
     """One cycle from the fine level, written as a loop over an explicit level pointer (numba cannot
     cache a recursive function); returns the largest relative change of phi it made.  Level 0 (its own
     ELL kernels, ``nb, w4``) and levels deeper than ``kdepth`` do one repetition: pre-smooth, coarse
@@ -704,8 +694,8 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             for _ in range(nu):
                 _fine_gs(x0, nb, w4, F[:n0], True)
             n1, e1 = NN[1], EO[1]
-            _fine_coarse_operator(x0, nb, C0, D0, G0, E0, S0, AGG[:n0], emap4, IP[PO[1]:PO[1] + n1 + 1],
-                                  S[n0:n0 + n1], DG[n0:n0 + n1], VALS[e1:e1 + NNZ[1]], F[n0:n0 + n1])
+            _fine_restrict(x0, nb, w4, F[:n0], E0, S0, AGG[:n0], emap4, IP[PO[1]:PO[1] + n1 + 1],
+                           S[n0:n0 + n1], DG[n0:n0 + n1], VALS[e1:e1 + NNZ[1]], F[n0:n0 + n1])
             X[n0:n0 + n1] = 1.0
         else:
             _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, EB, SB, krylov)
@@ -792,9 +782,9 @@ class LogFieldSolver:
         L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP = self.hier.arrays()
         if self._scales is None:
             if L > 1:
-                self._scales = fine_scales(self.s, AGG[:NN[0]], NN[1], self.w4, self.f)
+                self._scales = fine_scales(self.s, AGG[:NN[0]], NN[1])
             else:
-                self._scales = (np.zeros(0), np.zeros(0), np.zeros((0, 4)), np.zeros(0), np.zeros(0))
+                self._scales = (np.zeros(0), np.zeros(0))
         b = self._buf
         return float(_cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"],
                             b["X"], b["XS"], b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], b["E"], b["SA"],
