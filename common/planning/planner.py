@@ -39,6 +39,8 @@ class HarmonicPlanner:
         self._state = np.zeros((h + 2, w + 2), dtype=np.int8)
         self._s = np.zeros((h + 2, w + 2))
         self._r = np.zeros((h + 2, w + 2))
+        self._r_is_one = False            # whether r is 1 on every non-BLOCKED cell (s alone holds phi)
+        self._target_cells: tuple | None = None     # (target, mask) cache of _target_mask
         self._solved_key: tuple | None = None
         self._solver: LogFieldSolver | None = None
         self._converged = False
@@ -100,6 +102,8 @@ class HarmonicPlanner:
 
     # -- solving -------------------------------------------------------------------------------------
     def _target_mask(self) -> np.ndarray:
+        if self._target_cells is not None and self._target_cells[0] == self._target:
+            return self._target_cells[1]
         h, w = self.shape
         tx, ty, tr = self._target
         xs = self.cfg.origin[0] + (np.arange(w) + 0.5) * self.cfg.resolution
@@ -109,6 +113,7 @@ class HarmonicPlanner:
             cell = self.cell_of(tx, ty)
             if cell is not None:
                 mask[cell] = True
+        self._target_cells = (self._target, mask)
         return mask
 
     def _rebuild_state(self) -> None:
@@ -135,18 +140,21 @@ class HarmonicPlanner:
         if self._has_solution and np.array_equal(new_state, self._state):
             return      # evidence changed but no cell changed side: keep solution, weights and factors
         active = new_state == hk.ACTIVE
-        # Warm start: keep phi = exp(s) r wherever the cell was already solved; fold r into s.
+        # Warm start: keep phi = exp(s) r wherever the cell was already solved; fold r into s (r is 1
+        # everywhere after a completed solve, which stores its factors in s: nothing to fold then).
         known = active & (self._state == hk.ACTIVE) if self._has_solution else np.zeros_like(active)
         s = self._s
-        s[known] += np.log(self._r[known])
-        s[new_state == hk.TARGET] = 0.0
-        s[~(known | (new_state == hk.TARGET))] = 0.0
+        if not self._r_is_one:
+            s[known] += np.log(self._r[known])
+        s[~known] = 0.0             # target cells (phi = 1), blocked ones, and new cells before their guess
         # New cells: a BFS guess 0.3 (in log phi) lower per cell than their parent.
-        hk.extend_scale(s, known, new_state, 0.3)
+        if (active & ~known).any():
+            hk.extend_scale(s, known, new_state, 0.3)
         self._r = np.where(new_state != hk.BLOCKED, 1.0, 0.0)
+        self._r_is_one = True
         self._state = new_state
         # The system of the new map around the warm start, with its multigrid hierarchy (multigrid.py).
-        self._solver = LogFieldSolver(new_state, s, self.cfg.mg_coarsest)
+        self._solver = LogFieldSolver(new_state, s, self.cfg.mg_coarsest, recycle=self._solver)
         self._converged = False
         self._status = "ok"
         self._has_solution = True
@@ -157,6 +165,7 @@ class HarmonicPlanner:
         sv.rebase()
         self._s.ravel()[sv.cells] = sv.s
         self._r.ravel()[sv.cells] = 1.0
+        self._r_is_one = True
 
     def solve(self, max_ms: float | None = None, max_cycles: int | None = None) -> SolveReport:
         """Bring the field up to date: rebuild obstacles if the evidence or target changed, then run
