@@ -190,10 +190,13 @@ LINEAR_BAND = 0.5
 
 class Hierarchy:
     """Aggregates and coarse sparsity patterns of every level, flattened for the numba cycle.  Depends
-    only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle."""
+    only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle.  Level 0's
+    own entries are not copied into the flat arrays (the cycle reads level 0 from the solver's ELL
+    table; ``nnz[0]`` is 0 there): ``emap0`` maps its CSR entries to level 1's.  Copying them cost
+    ~1 ms per map change (3 MB of fresh memory)."""
 
     def __init__(self, indptr, indices, cy, cx, coarsest: int = 48):
-        ips, inds, aggs, emaps, sizes = [indptr], [indices], [], [], [cy.size]
+        ips, inds, aggs, emaps, sizes = [indptr], [np.zeros(0, np.int64)], [], [], [cy.size]
         ip, ind = indptr, indices
         while cy.size > coarsest:
             agg, nc, cy2, cx2 = aggregate(ip, ind, cy, cx)
@@ -214,6 +217,8 @@ class Hierarchy:
             sizes.append(nc)
             ip, ind, cy, cx = cptr, cind, cy2, cx2
         self.levels = len(sizes)
+        self.emap0 = emaps.pop(0) if emaps else np.zeros(0, np.int64)
+        emaps.insert(0, np.zeros(0, np.int64))
         self.n = np.array(sizes, dtype=np.int64)
         self.nnz = np.array([len(v) for v in inds], dtype=np.int64)
         self.ip_off = np.concatenate([[0], np.cumsum(self.n + 1)]).astype(np.int64)
@@ -484,7 +489,27 @@ def _dense_solve(dg, ip, ind, vals, f):
         A[i, i] = dg[i]
         for e in range(ip[i], ip[i + 1]):
             A[i, ind[e]] -= vals[e]
-    b = f.copy()
+    return _eliminate(A, f.copy())
+
+
+@njit(cache=True)
+def _dense_solve_ell(nb, w4, f):
+    """``_dense_solve`` of level 0 (dg = 1) from its ELL table: a map small enough to have no coarser
+    level."""
+    n = f.size
+    A = np.zeros((n, n))
+    for i in range(n):
+        A[i, i] = 1.0
+        for d in range(4):
+            if nb[i, d] != i:
+                A[i, nb[i, d]] -= w4[i, d]
+    return _eliminate(A, f.copy())
+
+
+@njit(cache=True)
+def _eliminate(A, b):
+    """Solve A x = b in place by Gaussian elimination without pivoting."""
+    n = b.size
     for k in range(n):
         for i in range(k + 1, n):
             if A[i, k] != 0.0:
@@ -638,13 +663,7 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
     rep = np.zeros(L, dtype=np.int64)
     state = np.zeros((L, 2))
     if L == 1:
-        m = 0
-        for i in range(n0):
-            for d in range(4):
-                if nb[i, d] != i:
-                    VALS[m] = w4[i, d]
-                    m += 1
-        sol = _dense_solve(DG[:n0], IP[:n0 + 1], IND[:NNZ[0]], VALS[:NNZ[0]], F[:n0])
+        sol = _dense_solve_ell(nb, w4, F[:n0])
         for i in range(n0):
             X[i] = max(sol[i], 1e-300)
         return _max_rel_change(x0, prev)
@@ -751,7 +770,7 @@ class LogFieldSolver:
         cells, nb, w4, f, ip, ind, cy, cx = fine_system(state, s_padded)
         self.cells, self.nb, self.w4 = cells, nb, w4
         self.hier = Hierarchy(ip, ind, cy, cx, coarsest)
-        self.emap4 = ell_emap(nb, self.hier.emap[:ind.size] if self.hier.levels > 1 else self.hier.emap)
+        self.emap4 = ell_emap(nb, self.hier.emap0)
         n, nodes, entries = cells.size, int(self.hier.n.sum()), int(self.hier.nnz.sum())
         # Every level's arrays in flat buffers (offsets in the hierarchy); level 0's are slices of them,
         # taken on access (stored views would come apart under copy.deepcopy).
