@@ -197,3 +197,30 @@ def test_malformed_odometry_pose_is_refused_with_a_reason():
     loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig())
     with pytest.raises(LocaliserError, match="4×4"):
         loc.update(0, np.ones((200, 3)), np.ones(200), np.eye(3))
+
+
+
+def test_tracking_right_after_a_fix_gives_the_global_search_answer(monkeypatch):
+    """Within tracking_gap_s of a fix the localiser registers from one seed at the prediction instead of a
+    lattice of candidates (the lattice was most of a registration's cost at 30 frames/s); driving down
+    the corridor with an odometry that drifts sideways, it ends where the global search ends."""
+    import common.slam as slam
+    lattices = []
+    real = slam.register_planar
+    monkeypatch.setattr(slam, "register_planar", lambda *a, **k: lattices.append(k["lattice"]) or real(*a, **k))
+    results = {}
+    for gap in (0.0, 0.25):
+        rng = np.random.default_rng(8)
+        world = room_points(rng, 60000)
+        loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(tracking_gap_s=gap))
+        lattices.clear()
+        for k in range(8):
+            truth = planar_pose(0.03 * k, 0.0, 0.0)
+            odom = planar_pose(0.03 * k, 0.01 * k, np.deg2rad(0.2 * k))      # drifting left and turning
+            est = loc.update(k * 10**8, *_flies(world, truth, rng), odom, generation=500)
+            assert k == 0 or est.status == "ok"
+        results[gap] = np.array(planar_from_transform(est.T_map_base))
+        assert ((1, 1, 1) in lattices) == (gap > 0)      # tracking searched around the prediction only
+    print(f"\nglobal {results[0.0]}, tracking {results[0.25]}")
+    assert np.hypot(*(results[0.25][:2] - results[0.0][:2])) < 0.01
+    assert abs(results[0.25][2] - results[0.0][2]) < np.deg2rad(0.2)
