@@ -1,0 +1,63 @@
+"""The log-space multigrid (common/planning/multigrid.py) on its own: small maps solved directly, and
+solvers built on the previous solver's buffers give exactly a fresh solver's field."""
+import numpy as np
+
+from common.planning import harmonic as hk
+from common.planning.multigrid import LogFieldSolver
+from tests.test_planning_solver import direct_log_phi
+
+
+def room(h, w, boxes=()):
+    """Padded state of an h x w room, target in the top-left corner, BLOCKED boxes (y0, y1, x0, x1) in
+    padded coordinates."""
+    state = np.full((h + 2, w + 2), hk.BLOCKED, dtype=np.int8)
+    state[1:-1, 1:-1] = hk.ACTIVE
+    for y0, y1, x0, x1 in boxes:
+        state[y0:y1, x0:x1] = hk.BLOCKED
+    state[1:3, 1:3] = hk.TARGET
+    return state
+
+
+def cold_scale(state):
+    s = np.zeros(state.shape)
+    hk.extend_scale(s, np.zeros(state.shape, dtype=bool), state, 0.3)
+    return s
+
+
+def solve(solver, tol=1e-12, cap=80):
+    for cycles in range(1, cap + 1):
+        if solver.cycle(2.0, 1, 99) < tol:
+            return cycles
+    return cap
+
+
+def log_phi(solver, shape):
+    psi = np.full(shape, -np.inf)
+    psi.ravel()[solver.cells] = solver.s + np.log(solver.x)
+    return psi
+
+
+def test_a_map_smaller_than_the_coarsest_level_is_solved_exactly_in_one_cycle():
+    state = room(5, 7, boxes=[(3, 5, 4, 5)])
+    solver = LogFieldSolver(state, cold_scale(state), coarsest=48)
+    assert solver.hier.levels == 1                      # no coarse level: one dense solve
+    solver.cycle(2.0, 1, 99)
+    act = state == hk.ACTIVE
+    ref = direct_log_phi(state)
+    assert np.abs(log_phi(solver, state.shape)[act] - ref[act]).max() < 1e-12
+    assert solver.cycle(2.0, 1, 99) < 1e-12             # and the next cycle changes nothing
+
+
+def test_a_solver_built_on_the_previous_solvers_buffers_gives_the_fresh_solvers_field():
+    """A map change reuses the old solver's work buffers; nothing of the old map may leak into the new
+    field (the new map has more cells, so the buffers also have to be big enough)."""
+    before = room(40, 50, boxes=[(10, 30, 20, 24), (25, 27, 5, 45)])
+    after = room(40, 50, boxes=[(10, 30, 20, 24)])     # a wall removed: more cells, another field
+    old = LogFieldSolver(before, cold_scale(before), coarsest=16)
+    solve(old)
+    fresh = LogFieldSolver(after, cold_scale(after), coarsest=16)
+    reused = LogFieldSolver(after, cold_scale(after), coarsest=16, recycle=old)
+    assert solve(fresh) == solve(reused)
+    assert np.array_equal(log_phi(fresh, after.shape), log_phi(reused, after.shape))
+    act = after == hk.ACTIVE
+    assert np.abs(log_phi(reused, after.shape)[act] - direct_log_phi(after)[act]).max() < 1e-8
