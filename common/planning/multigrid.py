@@ -288,17 +288,6 @@ def relative_residual(x, dg, ip, ind, vals, f, out):
 
 
 @njit(cache=True)
-def _residual_and_weights(x, dg, ip, ind, vals, f, r, w):
-    """``r = f - M x`` and the GCR weights ``w = 1 / dg^2`` (residuals relative to the diagonal)."""
-    for i in range(x.size):
-        acc = f[i] - dg[i] * x[i]
-        for e in range(ip[i], ip[i + 1]):
-            acc += vals[e] * x[ind[e]]
-        r[i] = acc
-        w[i] = 1.0 / (dg[i] * dg[i])
-
-
-@njit(cache=True)
 def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
     """Galerkin operator for the interpolation ``x * P0``, written to (sc, dgc, vc, fc) = the coarse
     level's (s, dg, vals, f): row a is the sum over the aggregate's cells of their equations rescaled to
@@ -329,7 +318,7 @@ def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
 
 
 @njit(cache=True)
-def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc, dgc, vc, fc):
+def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc, dgc, vc, fc, r, w):
     """``_coarse_operator`` for a level whose log scale is fixed between calls, in one pass: with
     ``E2_i = exp(2 (s_i - S_a))`` and ``S_a`` = max s over aggregate a precomputed (``_level_scales_into``),
     ``g_i = (phi_i / max phi)^2 = E2_i x_i^2 / m_a`` where ``m_a = max(E2 x^2)`` is common to coarse row
@@ -362,9 +351,15 @@ def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc,
         inv = 1.0 / m[a]
         dgc[a] *= inv
         fc[a] *= inv
+        acc = fc[a] - dgc[a]
         for k in range(cptr[a], cptr[a + 1]):
             vc[k] *= inv
+            acc += vc[k]
         sc[a] = S[a] + 0.5 * np.log(m[a])
+        # the coarse level's residual at its starting point q = 1 and its GCR weights, which a K-cycle
+        # level needs on entry: here for free instead of another pass there
+        r[a] = acc
+        w[a] = 1.0 / (dgc[a] * dgc[a])
 
 
 @njit(cache=True)
@@ -435,7 +430,7 @@ def fine_scales(s, agg, nc):
 
 
 @njit(cache=True)
-def _fine_restrict(x, nb, w4, f, E2, S, agg, emap4, cptr, sc, dgc, vc, fc):
+def _fine_restrict(x, nb, w4, f, E2, S, agg, emap4, cptr, sc, dgc, vc, fc, r, w):
     """Galerkin operator of level 1 from level 0 (``_coarse_operator_scaled`` with dg = 1 on the ELL
     table), written to (sc, dgc, vc, fc)."""
     nc = sc.size
@@ -464,9 +459,15 @@ def _fine_restrict(x, nb, w4, f, E2, S, agg, emap4, cptr, sc, dgc, vc, fc):
         inv = 1.0 / m[a]
         dgc[a] *= inv
         fc[a] *= inv
+        acc = fc[a] - dgc[a]
         for k in range(cptr[a], cptr[a + 1]):
             vc[k] *= inv
+            acc += vc[k]
         sc[a] = S[a] + 0.5 * np.log(m[a])
+        # the coarse level's residual at its starting point q = 1 and its GCR weights, which a K-cycle
+        # level needs on entry: here for free instead of another pass there
+        r[a] = acc
+        w[a] = 1.0 / (dgc[a] * dgc[a])
 
 
 @njit(cache=True)
@@ -569,7 +570,7 @@ def _gs_saving(x, xs, dg, ip, ind, vals, f):
 
 
 @njit(cache=True)
-def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, EB, SB, scaled):
+def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, nu, EB, SB, scaled):
     """Start one repetition at coarse level l >= 1: remember x, pre-smooth, and pose the coarse problem
     for the factor q (level l+1's buffers, q = 1)."""
     n, no, eo = NN[l], NO[l], EO[l]
@@ -591,7 +592,8 @@ def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, 
     out = (S[nco:nco + nc], DG[nco:nco + nc], VALS[eoc:eoc + NNZ[l + 1]], F[nco:nco + nc])
     if scaled:
         _coarse_operator_scaled(x, EB[no:no + n], SB[nco:nco + nc], dg, ip, ind, vals, f, agg, emap,
-                                IP[PO[l + 1]:PO[l + 1] + nc + 1], out[0], out[1], out[2], out[3])
+                                IP[PO[l + 1]:PO[l + 1] + nc + 1], out[0], out[1], out[2], out[3],
+                                R[nco:nco + nc], W[nco:nco + nc])
     else:
         _coarse_operator(x, S[no:no + n], dg, ip, ind, vals, f, agg, emap, out[0], out[1], out[2], out[3])
     X[nco:nco + nc] = 1.0
@@ -714,10 +716,8 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             rep[l] = 0
             state[l, 0] = 0.0
             if krylov:
-                n, no, eo = NN[l], NO[l], EO[l]
-                _residual_and_weights(X[no:no + n], DG[no:no + n], IP[PO[l]:PO[l] + n + 1],
-                                      IND[eo:eo + NNZ[l]], VALS[eo:eo + NNZ[l]], F[no:no + n], R[no:no + n],
-                                      W[no:no + n])
+                # R and W (residual at q = 1, GCR weights) were written with the level's operator
+                n, no = NN[l], NO[l]
                 # the level's log scale is fixed during its two repetitions: exp(s - max s) once, not
                 # a log and an exp per cell and repetition in _coarse_operator (~6 % of a cycle)
                 nco = NO[l + 1]
@@ -744,10 +744,11 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
                 _fine_gs(x0, nb, w4, F[:n0], True)
             n1, e1 = NN[1], EO[1]
             _fine_restrict(x0, nb, w4, F[:n0], E0, S0, AGG[:n0], emap4, IP[PO[1]:PO[1] + n1 + 1],
-                           S[n0:n0 + n1], DG[n0:n0 + n1], VALS[e1:e1 + NNZ[1]], F[n0:n0 + n1])
+                           S[n0:n0 + n1], DG[n0:n0 + n1], VALS[e1:e1 + NNZ[1]], F[n0:n0 + n1], R[n0:n0 + n1],
+                           W[n0:n0 + n1])
             X[n0:n0 + n1] = 1.0
         else:
-            _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, nu, EB, SB, krylov)
+            _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, nu, EB, SB, krylov)
         l += 1
         entering = True
 
