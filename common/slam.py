@@ -92,6 +92,11 @@ class LocaliserConfig:
     # prior still refuses a wrong local minimum.  0 always searches globally.
     tracking_gap_s: float = 0.25
     tracking_max_turn_rate_radps: float = np.deg2rad(5.0)
+    # While tracking, parameters whose minimum sat on the window's edge on the previous frame (typically the
+    # position along a corridor, which the view does not pin) are pinned from the start instead of found on
+    # the edge again and re-registered: the pipeline bench's latency tail was runs of such double
+    # registrations (~45 ms each).  Every this many frames the full window is tried again.
+    tracking_recheck_pinned: int = 10
     fallback_half_fov_rad: float = np.deg2rad(35.0)   # view cone when there is no calibration
 
 
@@ -150,6 +155,8 @@ class FlyLocaliser:
         self._driven_since_fix = 0.0
         self._turned_since_fix = 0.0
         self._last_fix_stamp: int | None = None
+        self._pinned_hint = np.zeros(3, bool)      # see LocaliserConfig.tracking_recheck_pinned
+        self._pinned_streak = 0
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp: int | None = None
         self._turn_rate = 0.0
@@ -361,15 +368,24 @@ class FlyLocaliser:
         def register(win):
             return register_planar(points, B, plane="body", window=tuple(win), eps=c.eps, weights_a=fit / fit.max(),
                                    stereo=self.stereo, seed=int(stamp_ns % (2**31)), lattice=lattice)
+        hint = self._pinned_hint if tracking else np.zeros(3, bool)
+        if hint.any() and self._pinned_streak >= c.tracking_recheck_pinned:
+            hint = np.zeros(3, bool)               # try the full window again
         try:
-            res = register(window)
-            # A minimum on the window's edge in some parameters (typically along a corridor, where nothing
-            # pins the position) says nothing about them: pin them at the prediction and register the rest.
-            pinned = np.abs(res.params) > 0.98 * window if np.all(np.isfinite(res.params)) else np.zeros(3, bool)
-            if not res.ok and res.reason.startswith("minimum on the search window boundary") and not pinned.all():
-                res = register(np.where(pinned, 0.0, window))
+            if hint.any():
+                res, pinned = register(np.where(hint, 0.0, window)), hint.copy()
             else:
-                pinned = np.zeros(3, bool)
+                res = register(window)
+                # A minimum on the window's edge in some parameters (typically along a corridor, where
+                # nothing pins the position) says nothing about them: pin them at the prediction and
+                # register the rest.
+                pinned = np.abs(res.params) > 0.98 * window if np.all(np.isfinite(res.params)) else np.zeros(3, bool)
+                if not res.ok and res.reason.startswith("minimum on the search window boundary") and not pinned.all():
+                    res = register(np.where(pinned, 0.0, window))
+                else:
+                    pinned = np.zeros(3, bool)
+            self._pinned_hint = pinned.copy()
+            self._pinned_streak = self._pinned_streak + 1 if hint.any() else 0
         except PopulationError as e:   # e.g. a degenerate map; odometry carries on
             return finish(T_pred, f"rejected: {e}", False, cov_pred)
         info = self._information(res)

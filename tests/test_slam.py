@@ -224,3 +224,35 @@ def test_tracking_right_after_a_fix_gives_the_global_search_answer(monkeypatch):
     print(f"\nglobal {results[0.0]}, tracking {results[0.25]}")
     assert np.hypot(*(results[0.25][:2] - results[0.0][:2])) < 0.01
     assert abs(results[0.25][2] - results[0.0][2]) < np.deg2rad(0.2)
+
+
+def test_tracking_pins_from_the_start_what_the_last_frame_found_on_the_window_edge(monkeypatch):
+    """Along a corridor the registered position along the view often sits on the window's edge and is
+    pinned and registered again (two registrations per frame).  While tracking, the next frames pin it
+    from the start (one registration each), and every tracking_recheck_pinned frames the full window is
+    tried again, so a position the view can pin again is not held at the prediction for ever."""
+    import common.slam as slam
+    from common.registration.register import RegistrationResult
+
+    windows = []
+
+    def edge_in_x(A, B, window, **kw):
+        """A stand-in registration: its minimum along x is always beyond the window."""
+        windows.append(np.array(window))
+        p = np.array([window[0], 0.0, 0.0])
+        edge = window[0] > 0
+        return RegistrationResult(T=planar_pose(*p), params=p, covariance=np.eye(3) * 1e-4, delta=1.0,
+                                  ok=not edge, reason="minimum on the search window boundary in parameter(s) [0]"
+                                  if edge else "")
+    monkeypatch.setattr(slam, "register_planar", edge_in_x)
+    rng = np.random.default_rng(9)
+    world = room_points(rng, 20000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(tracking_recheck_pinned=3))
+    for k in range(10):
+        T = planar_pose(0.01 * k, 0.0, 0.0)
+        est = loc.update(k * 33_000_000, *_flies(world, T, rng), T, generation=500)
+        assert k == 0 or est.status == "ok"
+    pinned_x = [w[0] == 0 for w in windows]
+    # frame 1: full window, then pinned again; frames 2-4: pinned from the start; frame 5: full window
+    # again (and pinned again), frames 6-8 pinned; frame 9 full window...
+    assert pinned_x == [False, True, True, True, True, False, True, True, True, True, False, True]
