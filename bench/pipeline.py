@@ -312,6 +312,10 @@ def main(argv=None) -> int:
     with lock:
         latencies = [1000 * (t - frame_seen[seq]) for seq, t in pose_seen.items() if seq in frame_seen]
         stages = stage_breakdown(frame_seen, traces, pose_seen)
+        per_frame = {int(seq): dict(latency_ms=round(1000 * (t - frame_seen[seq]), 2),
+                                    frame_s=round(frame_seen[seq] - t_start, 3))
+                     for seq, t in pose_seen.items() if seq in frame_seen}
+    (out / "latency_by_frame.json").write_text(json.dumps(per_frame))   # where in the run the tail sits
     cpu_percent: dict[str, float] = {}
     for pid, (name, first) in cpu_first.items():
         cpu_percent[name] = cpu_percent.get(name, 0.0) + 100 * (cpu_last[pid] - first) / run_s
