@@ -1,6 +1,7 @@
 """The log-space multigrid (common/planning/multigrid.py) on its own: small maps solved directly, and
 solvers built on the previous solver's buffers give exactly a fresh solver's field."""
 import numpy as np
+import pytest
 
 from common.planning import harmonic as hk
 from common.planning.multigrid import LogFieldSolver
@@ -61,3 +62,37 @@ def test_a_solver_built_on_the_previous_solvers_buffers_gives_the_fresh_solvers_
     assert np.array_equal(log_phi(fresh, after.shape), log_phi(reused, after.shape))
     act = after == hk.ACTIVE
     assert np.abs(log_phi(reused, after.shape)[act] - direct_log_phi(after)[act]).max() < 1e-8
+
+
+def test_cells_blocked_in_a_solved_system_give_the_new_maps_exact_field():
+    """``block`` keeps the old hierarchy (whose aggregates now straddle the new walls) but the live
+    cells' equations are the new map's: converged, the field is the direct solve of the new map, also
+    for a pocket the new wall cuts off (its cells are blocked too, as the planner's connectivity does)."""
+    before = room(30, 40, boxes=[(8, 24, 12, 14)])
+    solver = LogFieldSolver(before, cold_scale(before), coarsest=16)
+    solve(solver)
+    solver.rebase()
+    after = before.copy()
+    after[14:20, 25:33] = hk.BLOCKED                   # an object in the open room
+    after[24:31, 12:16] = hk.BLOCKED                   # the wall extended to the border and thickened
+    after[20:22, 30:41] = hk.BLOCKED                   # walls closing off the bottom-right corner ...
+    after[20:31, 30:32] = hk.BLOCKED
+    after[22:31, 32:41] = hk.BLOCKED                   # ... whose cells are then unreachable
+    gone = np.flatnonzero((before == hk.ACTIVE) & (after == hk.BLOCKED))
+    solver.block(gone)
+    assert solver.live_size == solver.size - gone.size
+    cycles = solve(solver)
+    assert cycles < 40
+    act = after == hk.ACTIVE
+    ref = direct_log_phi(after)
+    assert np.abs(log_phi(solver, after.shape)[act] - ref[act]).max() < 1e-8
+    solver.block(gone[:5])                             # blocking again changes nothing
+    assert solver.live_size == solver.size - gone.size
+    assert solver.cycle(2.0, 1, 99) < 1e-10
+
+
+def test_blocking_a_cell_the_solver_does_not_have_is_refused():
+    state = room(10, 12)
+    solver = LogFieldSolver(state, cold_scale(state), coarsest=16)
+    with pytest.raises(ValueError, match="block"):
+        solver.block(np.array([0]))                    # a border cell

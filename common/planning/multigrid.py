@@ -789,6 +789,33 @@ def rebase(x, s, nb, w4, f):
     x[:] = 1.0
 
 
+# Log scale given to a removed cell (``LogFieldSolver.block``): exp(2 (s - max s)) of it underflows to 0,
+# so it carries no weight in any aggregate that still has a live cell.
+DEAD_LOG_SCALE = -1e6
+
+
+@njit(cache=True)
+def _block_cells(dead, nb, w4, f, x, s):
+    """Cut the compact cells ``dead`` out of level 0's system in place: their couplings (both directions)
+    set to 0, their row ``x_i = f_i = 1`` (a fixed point Gauss-Seidel keeps exactly), their log scale to
+    DEAD_LOG_SCALE.  Returns how many were not dead already."""
+    fresh = 0
+    for k in range(dead.size):
+        i = dead[k]
+        if s[i] == DEAD_LOG_SCALE:
+            continue
+        fresh += 1
+        for d in range(4):
+            j = nb[i, d]
+            if j != i:
+                w4[j, d ^ 1] = 0.0      # east <-> west, south <-> north
+            w4[i, d] = 0.0
+        f[i] = 1.0
+        x[i] = 1.0
+        s[i] = DEAD_LOG_SCALE
+    return fresh
+
+
 class LogFieldSolver:
     """The ACTIVE cells' system for one map (which cells are ACTIVE / TARGET), solved by cycles.
 
@@ -821,6 +848,7 @@ class LogFieldSolver:
         self.f[:] = f
         self._buf["DG"][:n] = 1.0
         self._prev = np.empty(n)
+        self.dead = 0           # cells cut out by ``block`` since the hierarchy was built
         self._scales = None     # level-0 constants of the coarse operator (fine_scales), until the next rebase
 
     @property
@@ -839,7 +867,26 @@ class LogFieldSolver:
 
     @property
     def size(self) -> int:
+        """Unknowns in the system (including cells cut out by ``block``)."""
         return int(self.cells.size)
+
+    @property
+    def live_size(self) -> int:
+        """ACTIVE cells still in the system (``size`` minus the cells cut out by ``block``)."""
+        return int(self.cells.size) - self.dead
+
+    def block(self, flat_cells: np.ndarray) -> None:
+        """Take ACTIVE cells (padded flat indices, all in ``cells``) out of the system without rebuilding
+        the hierarchy: a map change that only blocks cells (an object appeared) keeps the aggregates and
+        coarse patterns, which depend only on the graph.  Each removed cell becomes an isolated unknown
+        fixed at x = 1 with a log scale so low that it weighs nothing in the Galerkin operators, so the
+        live cells' field is exactly that of the rebuilt map's (same equations); only the coarse spaces
+        are the old map's.  The iterate carries over as it is (a warm start)."""
+        idx = np.searchsorted(self.cells, np.asarray(flat_cells, dtype=np.int64))
+        if idx.size and (idx.max() >= self.cells.size or not np.array_equal(self.cells[idx], flat_cells)):
+            raise ValueError("LogFieldSolver.block: every cell to block must be one of the solver's cells")
+        self.dead += int(_block_cells(idx, self.nb, self.w4, self.f, self.x, self.s))
+        self._scales = None
 
     def cycle(self, over_correction: float, smoothing: int, krylov_levels: int) -> float:
         """One fine-level cycle; returns the largest relative change of phi it made."""
