@@ -153,7 +153,7 @@ def percentiles(values) -> dict | None:
     return {"p50": round(float(np.percentile(v, 50)), 1), "p99": round(float(np.percentile(v, 99)), 1)}
 
 
-def stage_breakdown(frame_seen: dict, traces: dict, poses: dict) -> dict[str, list[float]]:
+def stage_breakdown(frame_seen: dict, traces: dict, poses: dict, by_seq: dict | None = None) -> dict[str, list[float]]:
     """Per-stage durations (ms) of every frame that has a receive time, an evolver trace and a pose.
 
     ``frame_seen[seq]`` and ``poses[seq]`` are this process's receive times (monotonic s) of the frame and
@@ -176,6 +176,8 @@ def stage_breakdown(frame_seen: dict, traces: dict, poses: dict) -> dict[str, li
                          "total": poses[seq] - f}
             for k, v in durations.items():
                 out[k].append(1000 * v)
+            if by_seq is not None:
+                by_seq[seq] = {k: round(1000 * v, 2) for k, v in durations.items()}
         previous_pose = poses[seq]
     return out
 
@@ -311,9 +313,10 @@ def main(argv=None) -> int:
 
     with lock:
         latencies = [1000 * (t - frame_seen[seq]) for seq, t in pose_seen.items() if seq in frame_seen]
-        stages = stage_breakdown(frame_seen, traces, pose_seen)
+        stage_by_seq: dict = {}
+        stages = stage_breakdown(frame_seen, traces, pose_seen, stage_by_seq)
         per_frame = {int(seq): dict(latency_ms=round(1000 * (t - frame_seen[seq]), 2),
-                                    frame_s=round(frame_seen[seq] - t_start, 3))
+                                    frame_s=round(frame_seen[seq] - t_start, 3), stages_ms=stage_by_seq.get(seq))
                      for seq, t in pose_seen.items() if seq in frame_seen}
     (out / "latency_by_frame.json").write_text(json.dumps(per_frame))   # where in the run the tail sits
     cpu_percent: dict[str, float] = {}
