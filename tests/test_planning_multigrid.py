@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from common.planning import harmonic as hk
-from common.planning.multigrid import LogFieldSolver
+from common.planning.multigrid import LogFieldSolver, fine_scales
 from tests.test_planning_solver import direct_log_phi
 
 
@@ -71,7 +71,6 @@ def test_cells_blocked_in_a_solved_system_give_the_new_maps_exact_field():
     before = room(30, 40, boxes=[(8, 24, 12, 14)])
     solver = LogFieldSolver(before, cold_scale(before), coarsest=16)
     solve(solver)
-    solver.rebase()
     after = before.copy()
     after[14:20, 25:33] = hk.BLOCKED                   # an object in the open room
     after[24:31, 12:16] = hk.BLOCKED                   # the wall extended to the border and thickened
@@ -80,6 +79,10 @@ def test_cells_blocked_in_a_solved_system_give_the_new_maps_exact_field():
     after[22:31, 32:41] = hk.BLOCKED                   # ... whose cells are then unreachable
     gone = np.flatnonzero((before == hk.ACTIVE) & (after == hk.BLOCKED))
     solver.block(gone)
+    # the level-0 scales kept across the change are the ones computed afresh for the new log scale
+    n1 = solver.hier.n[1]
+    E2, S = fine_scales(solver.s, solver.hier.agg[:solver.size], n1)
+    assert np.array_equal(solver._scales[1], S) and np.allclose(solver._scales[0], E2, rtol=1e-14, atol=0)
     assert solver.live_size == solver.size - gone.size
     cycles = solve(solver)
     assert cycles < 40
