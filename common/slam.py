@@ -91,6 +91,9 @@ class LocaliserConfig:
     # global lattice search is what made a registration cost ~20 ms; the χ² gate against the odometry
     # prior still refuses a wrong local minimum.  0 always searches globally.
     tracking_gap_s: float = 0.25
+    # ... and not while turning faster than this: on a replayed spin at the start of a closed-loop run the
+    # local search let the heading slip 10° further than the lattice search did (a turning population is
+    # poorer and its minimum shallower).
     tracking_max_turn_rate_radps: float = np.deg2rad(5.0)
     # While tracking, parameters whose minimum sat on the window's edge on the previous frame (typically the
     # position along a corridor, which the view does not pin) are pinned from the start instead of found on
