@@ -370,7 +370,8 @@ class FlyLocaliser:
 
         def register(win):
             return register_planar(points, B, plane="body", window=tuple(win), eps=c.eps, weights_a=fit / fit.max(),
-                                   stereo=self.stereo, seed=int(stamp_ns % (2**31)), lattice=lattice)
+                                   stereo=self.stereo, seed=int(stamp_ns % (2**31)), lattice=lattice,
+                                   curvature=False)   # the measurement model is registration_sigma (see _information)
         hint = self._pinned_hint if tracking else np.zeros(3, bool)
         if hint.any() and self._pinned_streak >= c.tracking_recheck_pinned:
             hint = np.zeros(3, bool)               # try the full window again

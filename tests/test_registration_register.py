@@ -187,3 +187,20 @@ def test_sharp_minimum_of_equivalent_populations_at_small_eps_is_accepted():
     assert res.ok, res.reason
     assert np.all(np.abs(res.params[:2]) < 0.002) and abs(res.params[2]) < 1e-3
     assert np.all(np.isfinite(res.covariance)) and np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def test_without_curvature_the_same_answer_faster_and_no_covariance(street_flies):
+    """curvature=False (what the localiser asks for: it has its own measurement model) gives the same
+    estimate without the Hessian stage, reports no covariance, and still refuses a minimum on the window's
+    edge."""
+    rng = np.random.default_rng(12)
+    T_f = make_transform(rot_y(np.deg2rad(2.0)), [0.2, 0, 0.4])
+    B = noisy_replica(street_flies, T_f, rng)
+    full = register_planar(street_flies, B, plane="optical")
+    quick = register_planar(street_flies, B, plane="optical", curvature=False)
+    assert quick.ok and full.ok
+    np.testing.assert_allclose(quick.params, full.params, atol=1e-9)
+    assert np.all(np.isnan(quick.covariance)) and quick.hessian is None
+    assert "covariance_ms" not in quick.timings and "covariance_ms" in full.timings
+    narrow = register_planar(street_flies, B, plane="optical", window=(0.1, 0.1, np.deg2rad(5)), curvature=False)
+    assert not narrow.ok and narrow.reason.startswith("minimum on the search window boundary")

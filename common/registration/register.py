@@ -395,9 +395,29 @@ def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
                               reason=reason, mode=mode, **kw)
 
 
+def _without_curvature(mode, k, T, p_best, d_best, ambiguity, ambiguity_ratio, refined, free, center, half,
+                       evals, marks, t0) -> RegistrationResult:
+    """The result of a registration asked for no curvature (``curvature=False``): the window-edge and
+    ambiguity checks only — no Hessian, flatness test or covariance (their ~3 ms is a third of a tracking
+    registration, and a caller with its own measurement model, the localiser, uses none of them)."""
+    timings = {f"{name}_ms": 1e3 * (t - t_prev) for (name, t), (_, t_prev) in zip(marks, [("", t0)] + marks)}
+    timings["total_ms"] = 1e3 * (time.perf_counter() - t0)
+    common = dict(T=T, params=p_best, delta=d_best, mode=mode, ambiguity=ambiguity, evaluations=evals,
+                  timings=timings)
+    at_edge = free & (np.abs(p_best - center) > 0.99 * half)
+    if np.any(at_edge):
+        return _fail(reason=f"minimum on the search window boundary in parameter(s) "
+                            f"{list(np.flatnonzero(at_edge))}: widen the window or improve the prior",
+                     k=k, **common)
+    if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
+        return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
+                            f"nearly as deep ({ambiguity:.2f} of the best's depth)", k=k, **common)
+    return RegistrationResult(covariance=np.full((k, k), np.nan), ok=True, reason="", **common)
+
+
 def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_counts, max_points,
               coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
-              objective="delta", local_radius=0.5, lattice_step=None):
+              objective="delta", local_radius=0.5, lattice_step=None, curvature=True):
     t0 = time.perf_counter()
     pose = _POSES[mode]
     k = 3 if mode in PLANES else 6
@@ -524,6 +544,9 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         ambiguity = float(np.clip(1.0 - (refined[1][1] - d_best) / max(contrast, 1e-300), 0, 1))
 
     marks.append(("refine", time.perf_counter()))
+    if not curvature:
+        return _without_curvature(mode, k, T, p_best, d_best, ambiguity, ambiguity_ratio, refined, free, center,
+                                  half, evals, marks, t0)
     # --- curvature, covariance, checks
     L = max(radius, 1e-9)
     fd = np.array([min(0.25 * fld.rc, 0.02) if (mode == "6dof" and i < 3) or (mode in PLANES and i < 2)
@@ -680,7 +703,8 @@ def _register_stereo(mode, A, B, stereo: StereoModel, prior, window, weights_a, 
             wa_p, wb_p = wa * ma, wb * mb
         rest = args["rest"][:-2] + (stereo.objective, stereo.local_radius)
         step = stereo.lattice_step if args["lattice_step"] is None else args["lattice_step"]
-        res = _register(mode, A, B, args["eps"], T, window, wa_p, wb_p, *rest, lattice_step=step)
+        res = _register(mode, A, B, args["eps"], T, window, wa_p, wb_p, *rest, lattice_step=step,
+                        curvature=args.get("curvature", True))
         if not res.ok:
             return res
         T = res.T
@@ -692,7 +716,8 @@ def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, 
                     max_points: int = 1000, coarse_points: int = 192, min_flies: int = 20,
                     flat_ratio: float = 0.02, ambiguity_ratio: float = 0.9, field_options=None,
                     seed: int = 0, stereo: StereoModel | None = None, objective: str = "delta",
-                    local_radius: float = 0.5, lattice_step: float | None = None) -> RegistrationResult:
+                    local_radius: float = 0.5, lattice_step: float | None = None,
+                    curvature: bool = True) -> RegistrationResult:
     """Planar f minimising δ(A, f(B)): params (x, z, θ) for ``plane="optical"``, (x, y, θ) for "body".
 
     prior: 4×4 initial guess of f (e.g. from odometry; identity when None), projected onto the plane.
@@ -701,7 +726,9 @@ def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, 
     of A used for the fine stages (random subset, fixed seed); coarse_points: flies used on the
     lattice.  field_options: passed to PseudoDistanceField.  stereo: a StereoModel to weight flies by
     depth uncertainty and restrict them to the co-visible part of the scene (what the SLAM service
-    should use on real, deep scenes; without it this is the paper's δ).
+    should use on real, deep scenes; without it this is the paper's δ).  curvature=False skips the
+    Hessian, the flatness and not-a-minimum checks and the covariance (NaN): for callers with their own
+    measurement model; the window-edge and ambiguity checks still apply.
     Returns a RegistrationResult; see the module docstring for the covariance and the failure rules.
     """
     if plane not in PLANES:
@@ -712,8 +739,9 @@ def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, 
             objective, local_radius)
     if stereo is not None:
         return _register_stereo(plane, A, B, stereo, prior, window, weights_a, weights_b,
-                                dict(eps=eps, rest=rest, lattice_step=lattice_step))
-    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, *rest, lattice_step=lattice_step)
+                                dict(eps=eps, rest=rest, lattice_step=lattice_step, curvature=curvature))
+    return _register(plane, A, B, eps, prior, window, weights_a, weights_b, *rest, lattice_step=lattice_step,
+                     curvature=curvature)
 
 
 def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weights_a=None,
