@@ -14,17 +14,19 @@ the same map solved to a 1e-10 change per cycle (how accurate "converged" is).  
 excluded (warm-up run first).
 
 Figures (issue #7, target: warm update <= 10 ms at 200 x 200 with usable_gradient_fraction >= 0.99).
-Quiet machine, 2026-11-22, the session's starting code (77139e3) and this one run back to back:
-- 200 x 200 warm update: 26.3 ms (23.9 ms CPU), 8 cycles, log phi error 1.0e-5  ->  17.1 ms
-  (17.1 ms CPU), 7 cycles, error 5.5e-6; cold solve 52.7 ms (19 cycles) -> 37.4 ms (17 cycles).
-  Usable gradient 1.0 before and after, also after a 10 ms budget.  The 10 ms target is not met.
-- all sizes, this code: warm update 5.1 / 17.9 / 66 ms at 100 / 200 / 400 (7 / 7 / 8 cycles, errors
-  1.3e-5 / 5.5e-6 / 4.6e-6), cold 7.5 / 39 / 184 ms; the starting code measured 27 / 57 ms at 200 and
-  ~102 ms CPU for a 400 x 400 warm update (loaded machine).
-Where a 200 x 200 warm update's ~17 ms go (CPU): evidence -> inflation -> connectivity ~1 ms, the new
-map's system and multigrid hierarchy ~2.7 ms, cycles ~12.5 ms (the first two, far from the solution,
-~2 ms each, then ~1.55 ms: level 0 ~0.4, the K-cycle of level 1 ~0.5, deeper levels ~0.6), storing the
-solution ~0.3 ms.  See common/planning/multigrid.py for what was changed and what was tried.
+2026-11-22, second attempt (load ~2 on the 2 cores; wall = CPU time in this run):
+- 200 x 200 warm update: 12.6 ms (12.6 ms CPU), 7 cycles, log phi error 5.6e-6 (this morning 17.1 ms
+  on a quiet machine, the session's starting code 26 ms).  The 10 ms target is not met.
+- all sizes: warm update 3.6 / 12.6 / 58 ms at 100 / 200 / 400 (7 / 7 / 8 cycles, errors 1.3e-5 /
+  5.6e-6 / 4.6e-6), cold 9.4 / 35 / 178 ms (11 / 17 / 23 cycles); usable gradient 1.0 everywhere, also
+  after a 10 ms budget.
+What changed: an object appearing only blocks cells, so the planner cuts them out of the current solver
+(``LogFieldSolver.block``) instead of building the new map's system and multigrid hierarchy (~2.8 ms ->
+~0.1 ms), and the solution is stored without a rebase (its level-0 scales stay valid).  Where a
+200 x 200 warm update's ~12.5 ms go now (CPU): evidence -> inflation -> connectivity ~0.75 ms (0.4 of it
+the clearance transform), cycles ~11.5 ms (7-8 at ~1.55-1.7 ms; the same cycle
+with K-cycles on level 1 only costs ~1.15 ms, as a plain V-cycle ~0.8 ms), storing the solution ~0.2 ms.  The rest of the gap is the cycle count (error
+reduced ~0.15-0.2 per cycle); see common/planning/multigrid.py for what was tried against it.
 
 Usage: python bench/planner.py [--json] [--sizes 100 200 400] [--warm-trials 5]
 """
