@@ -24,9 +24,10 @@ What changed: an object appearing only blocks cells, so the planner cuts them ou
 (``LogFieldSolver.block``) instead of building the new map's system and multigrid hierarchy (~2.8 ms ->
 ~0.1 ms), and the solution is stored without a rebase (its level-0 scales stay valid).  Where a
 200 x 200 warm update's ~12.5 ms go now (CPU): evidence -> inflation -> connectivity ~0.75 ms (0.4 of it
-the clearance transform), cycles ~11.5 ms (7-8 at ~1.55-1.7 ms; the same cycle
-with K-cycles on level 1 only costs ~1.15 ms, as a plain V-cycle ~0.8 ms), storing the solution ~0.2 ms.  The rest of the gap is the cycle count (error
-reduced ~0.15-0.2 per cycle); see common/planning/multigrid.py for what was tried against it.
+the clearance transform), cycles ~11.5 ms (7-8 at ~1.55-1.7 ms; the same cycle with K-cycles on level 1
+only costs ~1.15 ms, as a plain V-cycle ~0.8 ms), storing the solution ~0.2 ms.  The rest of the gap is
+the cycle count (error reduced ~0.15-0.2 per cycle); see common/planning/multigrid.py for what was
+tried against it.
 
 Usage: python bench/planner.py [--json] [--sizes 100 200 400] [--warm-trials 5]
 """
