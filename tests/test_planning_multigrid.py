@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from common.planning import harmonic as hk
-from common.planning.multigrid import LogFieldSolver, fine_scales
+from common.planning.multigrid import LogFieldSolver, fine_scales, pad_rows4
 from tests.test_planning_solver import direct_log_phi
 
 
@@ -99,3 +99,18 @@ def test_blocking_a_cell_the_solver_does_not_have_is_refused():
     solver = LogFieldSolver(state, cold_scale(state), coarsest=16)
     with pytest.raises(ValueError, match="block"):
         solver.block(np.array([0]))                    # a border cell
+
+
+def test_rows_padded_to_four_entries_keep_every_coupling_and_where_the_finer_level_adds_to_it():
+    cptr = np.array([0, 2, 3, 7, 8, 9])
+    cind = np.array([1, 2, 0, 0, 1, 3, 4, 2, 2])       # row 2 already has 4 entries
+    emap = np.array([-1, 0, 1, 2, -1, 8, 3, 6])        # finer-level entries -> these entries
+    ip4, ind4, emap4 = pad_rows4(cptr, cind, emap)
+    assert np.array_equal(ip4, [0, 4, 8, 12, 16, 20])
+    for row in range(5):
+        real = cind[cptr[row]:cptr[row + 1]]
+        padded = ind4[4 * row:4 * row + 4]
+        assert list(padded[:real.size]) == list(real) and np.all(padded[real.size:] == row)
+    # every finer entry still lands on the same neighbour
+    for e, k in enumerate(emap):
+        assert (emap4[e] < 0) if k < 0 else (ind4[emap4[e]] == cind[k])

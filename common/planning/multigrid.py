@@ -230,6 +230,21 @@ OVER_CLIP = 2.0
 LINEAR_BAND = 0.5
 
 
+def pad_rows4(cptr, cind, emap):
+    """A CSR pattern whose rows have at most 4 entries, padded to exactly 4 (a padding entry points at its
+    own row and its value stays 0), and the finer level's entry map moved to the padded positions.  The
+    kernels run such a level with a fixed four-term row (``four``), which the compiler unrolls: on the
+    ELL-like grid of level 1 (every row <= 4 entries) the CSR row loop was the slow part."""
+    nc = cptr.size - 1
+    deg = np.diff(cptr)
+    rows = np.repeat(np.arange(nc), deg)
+    pos = np.arange(cind.size) - cptr[:-1][rows] + 4 * rows
+    ind4 = np.repeat(np.arange(nc, dtype=np.int64), 4)
+    ind4[pos] = cind
+    emap4 = np.where(emap >= 0, pos[np.maximum(emap, 0)], -1)
+    return np.arange(0, 4 * nc + 1, 4, dtype=np.int64), ind4, emap4
+
+
 class Hierarchy:
     """Aggregates and coarse sparsity patterns of every level, flattened for the numba cycle.  Depends
     only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle.  Level 0's
@@ -239,6 +254,7 @@ class Hierarchy:
 
     def __init__(self, indptr, indices, cy, cx, coarsest: int = 48):
         ips, inds, aggs, emaps, sizes = [indptr], [np.zeros(0, np.int64)], [], [], [cy.size]
+        pads = [False]
         ip, ind = indptr, indices
         while cy.size > coarsest:
             agg, nc, cy2, cx2 = aggregate(ip, ind, cy, cx)
@@ -252,6 +268,10 @@ class Hierarchy:
             if nc == cy.size:
                 break
             cptr, cind, emap = coarse_pattern(ip, ind, agg, nc)
+            pad = bool(cind.size) and int(np.diff(cptr).max()) <= 4
+            if pad:
+                cptr, cind, emap = pad_rows4(cptr, cind, emap)
+            pads.append(pad)
             aggs.append(agg)
             emaps.append(emap)
             ips.append(cptr)
@@ -259,6 +279,7 @@ class Hierarchy:
             sizes.append(nc)
             ip, ind, cy, cx = cptr, cind, cy2, cx2
         self.levels = len(sizes)
+        self.pad4 = np.array(pads, dtype=np.bool_)      # level stored with exactly 4 entries per row
         self.emap0 = emaps.pop(0) if emaps else np.zeros(0, np.int64)
         emaps.insert(0, np.zeros(0, np.int64))
         self.n = np.array(sizes, dtype=np.int64)
@@ -273,20 +294,26 @@ class Hierarchy:
 
     def arrays(self):
         return (self.levels, self.n, self.nnz, self.ip_off, self.e_off, self.n_off, self.ip, self.ind,
-                self.agg, self.emap)
+                self.agg, self.emap, self.pad4)
 
 
 @njit(cache=True)
-def _gs(x, dg, ip, ind, vals, f, forward):
+def _gs(x, dg, ip, ind, vals, f, forward, four):
     """One Gauss-Seidel sweep.  ``acc * (1 / dg)``, not ``acc / dg``: the reciprocal does not wait for
-    the previous row, so the division leaves the sweep's row-to-row dependency chain (2.5x faster)."""
+    the previous row, so the division leaves the sweep's row-to-row dependency chain (2.5x faster).
+    ``four``: every row has exactly 4 entries (``pad_rows4``), a fixed-length row."""
     n = x.size
     for kk in range(n):
         i = kk if forward else n - 1 - kk
         inv = 1.0 / dg[i]
         acc = f[i]
-        for e in range(ip[i], ip[i + 1]):
-            acc += vals[e] * x[ind[e]]
+        if four:
+            e = 4 * i
+            acc += (vals[e] * x[ind[e]] + vals[e + 1] * x[ind[e + 1]]) \
+                + (vals[e + 2] * x[ind[e + 2]] + vals[e + 3] * x[ind[e + 3]])
+        else:
+            for e in range(ip[i], ip[i + 1]):
+                acc += vals[e] * x[ind[e]]
         x[i] = acc * inv
 
 
@@ -337,7 +364,7 @@ def _coarse_operator(x, s, dg, ip, ind, vals, f, agg, emap, sc, dgc, vc, fc):
 
 
 @njit(cache=True)
-def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc, dgc, vc, fc, r, w):
+def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc, dgc, vc, fc, r, w, four):
     """``_coarse_operator`` for a level whose log scale is fixed between calls, in one pass: with
     ``E2_i = exp(2 (s_i - S_a))`` and ``S_a`` = max s over aggregate a precomputed (``_level_scales_into``),
     ``g_i = (phi_i / max phi)^2 = E2_i x_i^2 / m_a`` where ``m_a = max(E2 x^2)`` is common to coarse row
@@ -357,7 +384,8 @@ def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc,
         # the diagonal's contributions summed in a register first: read-modify-writes of dgc[a] by
         # every entry formed a chain through memory that dominated the pass
         dsum = u * dg[i]
-        for e in range(ip[i], ip[i + 1]):
+        e0, e1 = (4 * i, 4 * i + 4) if four else (ip[i], ip[i + 1])
+        for e in range(e0, e1):
             c = ex * vals[e] * x[ind[e]]
             k = emap[e]
             if k < 0:
@@ -584,19 +612,25 @@ def _eliminate(A, b):
 
 
 @njit(cache=True)
-def _gs_saving(x, xs, dg, ip, ind, vals, f):
+def _gs_saving(x, xs, dg, ip, ind, vals, f, four):
     """Forward Gauss-Seidel sweep that first copies every x_i to xs (the repetition's starting point)."""
     for i in range(x.size):
         xs[i] = x[i]
         inv = 1.0 / dg[i]           # off the row-to-row dependency chain (see _gs)
         acc = f[i]
-        for e in range(ip[i], ip[i + 1]):
-            acc += vals[e] * x[ind[e]]
+        if four:
+            e = 4 * i
+            acc += (vals[e] * x[ind[e]] + vals[e + 1] * x[ind[e + 1]]) \
+                + (vals[e + 2] * x[ind[e + 2]] + vals[e + 3] * x[ind[e + 3]])
+        else:
+            for e in range(ip[i], ip[i + 1]):
+                acc += vals[e] * x[ind[e]]
         x[i] = acc * inv
 
 
 @njit(cache=True)
-def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, nu, EB, SB, scaled):
+def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, nu, EB, SB, scaled,
+             PAD):
     """Start one repetition at coarse level l >= 1: remember x, pre-smooth, and pose the coarse problem
     for the factor q (level l+1's buffers, q = 1)."""
     n, no, eo = NN[l], NO[l], EO[l]
@@ -607,19 +641,20 @@ def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, 
     dg = DG[no:no + n]
     vals = VALS[eo:eo + NNZ[l]]
     f = F[no:no + n]
+    four = PAD[l]
     if nu > 0:
-        _gs_saving(x, XS[no:no + n], dg, ip, ind, vals, f)
+        _gs_saving(x, XS[no:no + n], dg, ip, ind, vals, f, four)
     else:
         XS[no:no + n] = x
     for _ in range(nu - 1):
-        _gs(x, dg, ip, ind, vals, f, True)
+        _gs(x, dg, ip, ind, vals, f, True, four)
     agg = AGG[no:no + n]
     emap = EMAP[eo:eo + NNZ[l]]
     out = (S[nco:nco + nc], DG[nco:nco + nc], VALS[eoc:eoc + NNZ[l + 1]], F[nco:nco + nc])
     if scaled:
         _coarse_operator_scaled(x, EB[no:no + n], SB[nco:nco + nc], dg, ip, ind, vals, f, agg, emap,
                                 IP[PO[l + 1]:PO[l + 1] + nc + 1], out[0], out[1], out[2], out[3],
-                                R[nco:nco + nc], W[nco:nco + nc])
+                                R[nco:nco + nc], W[nco:nco + nc], four)
     else:
         _coarse_operator(x, S[no:no + n], dg, ip, ind, vals, f, agg, emap, out[0], out[1], out[2], out[3])
     X[nco:nco + nc] = 1.0
@@ -627,7 +662,7 @@ def _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, 
 
 @njit(cache=True)
 def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, state,
-            over, krylov, nu):
+            over, krylov, nu, PAD):
     """Finish one repetition at level l: apply the coarse factors q (over-corrected at a non-Krylov
     level), post-smooth, and at a Krylov level take the GCR step.  ``state`` = [rep_lin, vv1] of this
     level (the previous repetition's Krylov direction and its norm)."""
@@ -649,8 +684,9 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
     lo = 1.0 / hi
     for i in range(n):
         x[i] *= q[agg[i]]
+    four = PAD[l]
     for _ in range(nu):
-        _gs(x, dg, ip, ind, vals, f, False)
+        _gs(x, dg, ip, ind, vals, f, False, four)
     if not krylov:
         return
     r, w = R[no:no + n], W[no:no + n]
@@ -668,7 +704,8 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
             break
         d[i] = di
         acc = dg[i] * di
-        for e in range(ip[i], ip[i + 1]):
+        e0, e1 = (4 * i, 4 * i + 4) if four else (ip[i], ip[i + 1])
+        for e in range(e0, e1):
             j = ind[e]
             acc -= vals[e] * (x[j] - xs[j])
         v[i] = acc
@@ -706,7 +743,7 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
 
 @njit(cache=True)
 def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, EB, SB,
-           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev):
+           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev, PAD):
     """One cycle from the fine level, written as a loop over an explicit level pointer (numba cannot
     cache a recursive function); returns the largest relative change of phi it made.  Level 0 (its own
     ELL kernels, ``nb, w4``) and levels deeper than ``kdepth`` do one repetition: pre-smooth, coarse
@@ -759,7 +796,7 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             return _max_rel_change(x0, prev)
         else:
             _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1,
-                    state[l], 1.0 if krylov else over_correction, krylov, nu)
+                    state[l], 1.0 if krylov else over_correction, krylov, nu, PAD)
             rep[l] += 1
             if rep[l] >= (2 if krylov else 1):
                 l -= 1
@@ -774,7 +811,8 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
                            W[n0:n0 + n1])
             X[n0:n0 + n1] = 1.0
         else:
-            _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, nu, EB, SB, krylov)
+            _descend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, nu, EB, SB, krylov,
+                     PAD)
         l += 1
         entering = True
 
@@ -937,7 +975,7 @@ class LogFieldSolver:
 
     def cycle(self, over_correction: float, smoothing: int, krylov_levels: int) -> float:
         """One fine-level cycle; returns the largest relative change of phi it made."""
-        L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP = self.hier.arrays()
+        L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, PAD = self.hier.arrays()
         if self._scales is None:
             if L > 1:
                 self._scales = fine_scales(self.s, AGG[:NN[0]], NN[1])
@@ -947,7 +985,7 @@ class LogFieldSolver:
         return float(_cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"],
                             b["X"], b["XS"], b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], b["E"], b["SA"],
                             float(over_correction), int(krylov_levels), int(smoothing), self.nb, self.w4,
-                            self.emap4, *self._scales, self._prev))
+                            self.emap4, *self._scales, self._prev, PAD))
 
     def residual(self) -> float:
         """Largest relative residual of level 0 (see ``relative_residual``)."""
