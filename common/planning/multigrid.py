@@ -449,6 +449,33 @@ def _fine_gs(x, nb, w4, f, forward):
 
 
 @njit(cache=True)
+def _fine_gs_saving(x, prev, nb, w4, f):
+    """``_fine_gs`` forward that first copies every x_i to prev (the cycle's starting point): one pass
+    instead of a copy and a sweep."""
+    for i in range(x.size):
+        prev[i] = x[i]
+        x[i] = (f[i] + w4[i, 0] * x[nb[i, 0]] + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * x[nb[i, 3]]) \
+            + w4[i, 1] * x[nb[i, 1]]
+
+
+@njit(cache=True)
+def _fine_prolong_gs_back(x, nb, w4, f, q, agg, prev):
+    """The end of a cycle in one pass: ``x *= q[agg]`` (the coarse factors), a backward ``_fine_gs`` and
+    ``_max_rel_change`` against prev.  Going backward, the east and south neighbours (higher compact
+    index) are final already; the west and north ones are read times their factor.  The same arithmetic
+    as the three passes, in the same order (identical results); returns the largest relative change."""
+    worst = 0.0
+    for i in range(x.size - 1, -1, -1):
+        jw = nb[i, 1]
+        jn = nb[i, 3]
+        v = (f[i] + w4[i, 1] * (x[jw] * q[agg[jw]]) + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * (x[jn] * q[agg[jn]])) \
+            + w4[i, 0] * x[nb[i, 0]]
+        x[i] = v
+        worst = max(worst, abs(v - prev[i]) / v)
+    return worst
+
+
+@njit(cache=True)
 def fine_residual(x, nb, w4, f):
     """``relative_residual`` of level 0: max |f + W x - x| / x."""
     worst = 0.0
@@ -754,10 +781,10 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
     (nodes) / EO (entries); level 0's operator is only in ``nb, w4`` (its VALS slice is scratch)."""
     n0 = NN[0]
     x0 = X[:n0]
-    prev[:] = x0
     rep = np.zeros(L, dtype=np.int64)
     state = np.zeros((L, 2))
     if L == 1:
+        prev[:] = x0
         sol = _dense_solve_ell(nb, w4, F[:n0])
         for i in range(n0):
             X[i] = max(sol[i], 1e-300)
@@ -789,6 +816,8 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             q = X[n0:n0 + NN[1]]
             _over_correct(q, over_correction)
             agg0 = AGG[:n0]
+            if nu == 1:
+                return _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev)
             for i in range(n0):
                 x0[i] *= q[agg0[i]]
             for _ in range(nu):
@@ -803,7 +832,8 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
                 entering = False
                 continue
         if l == 0:
-            for _ in range(nu):
+            _fine_gs_saving(x0, prev, nb, w4, F[:n0])
+            for _ in range(nu - 1):
                 _fine_gs(x0, nb, w4, F[:n0], True)
             n1, e1 = NN[1], EO[1]
             _fine_restrict(x0, nb, w4, F[:n0], E0, S0, AGG[:n0], emap4, IP[PO[1]:PO[1] + n1 + 1],
