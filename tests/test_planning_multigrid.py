@@ -114,3 +114,18 @@ def test_rows_padded_to_four_entries_keep_every_coupling_and_where_the_finer_lev
     # every finer entry still lands on the same neighbour
     for e, k in enumerate(emap):
         assert (emap4[e] < 0) if k < 0 else (ind4[emap4[e]] == cind[k])
+
+
+def test_more_level0_sweeps_converge_to_the_same_field_in_fewer_cycles():
+    state = room(40, 50, boxes=[(10, 30, 20, 24), (25, 27, 5, 45)])
+    act = state == hk.ACTIVE
+    ref = direct_log_phi(state)
+    cycles = {}
+    for sweeps in (1, 2):
+        solver = LogFieldSolver(state, cold_scale(state), coarsest=16)
+        for k in range(1, 81):
+            if solver.cycle(2.0, 1, 99, fine_sweeps=sweeps) < 1e-10:
+                break
+        cycles[sweeps] = k
+        assert np.abs(log_phi(solver, state.shape)[act] - ref[act]).max() < 1e-8
+    assert cycles[2] < cycles[1]

@@ -69,7 +69,12 @@ up to 44 cycles; with a fall-back to full K-cycles on slow progress no gain at 4
 (y - 1) // 2 (no fewer cycles, errors 1.9e-5); over-relaxed level-0 sweeps (omega 1.15 / 1.3: 8.8 / 11.4
 cycles); over-correction 1.7 / 2.3 (8.0 / 8.2 cycles); vectorised exp / log (1 ulp) for the per-visit
 level scales and coarse log scales (their share fell from ~0.14 to ~0.09 ms per cycle, but a cycle
-measured 1.56-1.65 ms either way).
+measured 1.56-1.65 ms either way).  Two level-0 sweeps before and after the coarse correction
+(``cycle(..., fine_sweeps=2)``, coarse levels still one): 6-7 instead of 7-8 cycles per warm update at
+100 / 200 / 400 and smaller errors (0.8e-6 .. 5e-6); ~14 % faster at 200 x 200 in an A/B of warm
+updates alone, but ~10 % slower inside bench/planner.py, whose warm updates follow another planner's
+solve (level 0's ~4 MB of arrays then come from memory: +0.23 ms per cycle there, +0.05 ms alone),
+so the planner keeps one.
 """
 from __future__ import annotations
 
@@ -459,16 +464,30 @@ def _fine_gs_saving(x, prev, nb, w4, f):
 
 
 @njit(cache=True)
-def _fine_prolong_gs_back(x, nb, w4, f, q, agg, prev):
+def _fine_prolong_gs_back(x, nb, w4, f, q, agg, prev, measure):
     """The end of a cycle in one pass: ``x *= q[agg]`` (the coarse factors), a backward ``_fine_gs`` and
     ``_max_rel_change`` against prev.  Going backward, the east and south neighbours (higher compact
     index) are final already; the west and north ones are read times their factor.  The same arithmetic
-    as the three passes, in the same order (identical results); returns the largest relative change."""
+    as the three passes, in the same order (identical results); returns the largest relative change
+    (0 unless ``measure``: more sweeps follow)."""
     worst = 0.0
     for i in range(x.size - 1, -1, -1):
         jw = nb[i, 1]
         jn = nb[i, 3]
         v = (f[i] + w4[i, 1] * (x[jw] * q[agg[jw]]) + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * (x[jn] * q[agg[jn]])) \
+            + w4[i, 0] * x[nb[i, 0]]
+        x[i] = v
+        if measure:
+            worst = max(worst, abs(v - prev[i]) / v)
+    return worst
+
+
+@njit(cache=True)
+def _fine_gs_back_change(x, nb, w4, f, prev):
+    """The last backward ``_fine_gs`` of a cycle with ``_max_rel_change`` against prev in the same pass."""
+    worst = 0.0
+    for i in range(x.size - 1, -1, -1):
+        v = (f[i] + w4[i, 1] * x[nb[i, 1]] + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * x[nb[i, 3]]) \
             + w4[i, 0] * x[nb[i, 0]]
         x[i] = v
         worst = max(worst, abs(v - prev[i]) / v)
@@ -770,7 +789,7 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
 
 @njit(cache=True)
 def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, EB, SB,
-           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev, PAD):
+           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev, PAD, nu0):
     """One cycle from the fine level, written as a loop over an explicit level pointer (numba cannot
     cache a recursive function); returns the largest relative change of phi it made.  Level 0 (its own
     ELL kernels, ``nb, w4``) and levels deeper than ``kdepth`` do one repetition: pre-smooth, coarse
@@ -816,13 +835,12 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             q = X[n0:n0 + NN[1]]
             _over_correct(q, over_correction)
             agg0 = AGG[:n0]
-            if nu == 1:
-                return _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev)
-            for i in range(n0):
-                x0[i] *= q[agg0[i]]
-            for _ in range(nu):
+            if nu0 == 1:
+                return _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev, True)
+            _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev, False)
+            for _ in range(nu0 - 2):
                 _fine_gs(x0, nb, w4, F[:n0], False)
-            return _max_rel_change(x0, prev)
+            return _fine_gs_back_change(x0, nb, w4, F[:n0], prev)
         else:
             _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1,
                     state[l], 1.0 if krylov else over_correction, krylov, nu, PAD)
@@ -833,7 +851,7 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
                 continue
         if l == 0:
             _fine_gs_saving(x0, prev, nb, w4, F[:n0])
-            for _ in range(nu - 1):
+            for _ in range(nu0 - 1):
                 _fine_gs(x0, nb, w4, F[:n0], True)
             n1, e1 = NN[1], EO[1]
             _fine_restrict(x0, nb, w4, F[:n0], E0, S0, AGG[:n0], emap4, IP[PO[1]:PO[1] + n1 + 1],
@@ -1003,8 +1021,13 @@ class LogFieldSolver:
         if self._scales is not None and self._scales[1].size:
             _rescale_dead_aggregates(self.s, self.hier.agg[:self.size], idx, *self._scales)
 
-    def cycle(self, over_correction: float, smoothing: int, krylov_levels: int) -> float:
-        """One fine-level cycle; returns the largest relative change of phi it made."""
+    def cycle(self, over_correction: float, smoothing: int, krylov_levels: int,
+              fine_sweeps: int | None = None) -> float:
+        """One fine-level cycle; returns the largest relative change of phi it made.  ``smoothing``:
+        Gauss-Seidel sweeps before and after each coarse correction on the coarse levels, and on level 0
+        unless ``fine_sweeps`` is given."""
+        if fine_sweeps is None:
+            fine_sweeps = smoothing
         L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, PAD = self.hier.arrays()
         if self._scales is None:
             if L > 1:
@@ -1015,7 +1038,7 @@ class LogFieldSolver:
         return float(_cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"],
                             b["X"], b["XS"], b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], b["E"], b["SA"],
                             float(over_correction), int(krylov_levels), int(smoothing), self.nb, self.w4,
-                            self.emap4, *self._scales, self._prev, PAD))
+                            self.emap4, *self._scales, self._prev, PAD, int(fine_sweeps)))
 
     def residual(self) -> float:
         """Largest relative residual of level 0 (see ``relative_residual``)."""
