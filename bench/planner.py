@@ -14,15 +14,16 @@ the same map solved to a 1e-10 change per cycle (how accurate "converged" is).  
 excluded (warm-up run first).
 
 Figures (issue #7, target: warm update <= 10 ms at 200 x 200 with usable_gradient_fraction >= 0.99).
-2026-11-22, second attempt (load ~2 on the 2 cores; wall = CPU time in this run):
-- 200 x 200 warm update: 12.6 ms (12.6 ms CPU), 7 cycles, log phi error 5.6e-6 (this morning 17.1 ms
+2026-11-22, second attempt (load 0.7-2 on the 2 cores; the quietest of four runs, the others 12.6-13.3 ms):
+- 200 x 200 warm update: 12.4 ms (12.7 ms CPU), 7 cycles, log phi error 5.6e-6 (this morning 17.1 ms
   on a quiet machine, the session's starting code 26 ms).  The 10 ms target is not met.
-- all sizes: warm update 3.6 / 12.6 / 58 ms at 100 / 200 / 400 (7 / 7 / 8 cycles, errors 1.3e-5 /
-  5.6e-6 / 4.6e-6), cold 9.4 / 35 / 178 ms (11 / 17 / 23 cycles); usable gradient 1.0 everywhere, also
+- all sizes: warm update 3.5 / 12.4 / 56 ms at 100 / 200 / 400 (7 / 7 / 8 cycles, errors 1.3e-5 /
+  5.6e-6 / 4.6e-6), cold 9.4 / 35 / 181 ms (11 / 17 / 23 cycles); usable gradient 1.0 everywhere, also
   after a 10 ms budget.
 What changed: an object appearing only blocks cells, so the planner cuts them out of the current solver
 (``LogFieldSolver.block``) instead of building the new map's system and multigrid hierarchy (~2.8 ms ->
-~0.1 ms), and the solution is stored without a rebase (its level-0 scales stay valid).  Where a
+~0.1 ms), and the solution is stored without a rebase (its level-0 scales stay valid); level 1 runs on
+fixed four-entry rows and level 0's end of cycle is one pass (~3 % + ~2 % per cycle).  Where a
 200 x 200 warm update's ~12.5 ms go now (CPU): evidence -> inflation -> connectivity ~0.75 ms (0.4 of it
 the clearance transform), cycles ~11.5 ms (7-8 at ~1.55-1.7 ms; the same cycle with K-cycles on level 1
 only costs ~1.15 ms, as a plain V-cycle ~0.8 ms), storing the solution ~0.2 ms.  The rest of the gap is
