@@ -71,10 +71,10 @@ cycles); over-correction 1.7 / 2.3 (8.0 / 8.2 cycles); vectorised exp / log (1 u
 level scales and coarse log scales (their share fell from ~0.14 to ~0.09 ms per cycle, but a cycle
 measured 1.56-1.65 ms either way).  Two level-0 sweeps before and after the coarse correction
 (``cycle(..., fine_sweeps=2)``, coarse levels still one): 6-7 instead of 7-8 cycles per warm update at
-100 / 200 / 400 and smaller errors (0.8e-6 .. 5e-6); ~14 % faster at 200 x 200 in an A/B of warm
-updates alone, but ~10 % slower inside bench/planner.py, whose warm updates follow another planner's
-solve (level 0's ~4 MB of arrays then come from memory: +0.23 ms per cycle there, +0.05 ms alone),
-so the planner keeps one.
+100 / 200 / 400 and smaller errors (0.8e-6 .. 5e-6); ~14 % faster at 200 x 200 on one set of five
+objects, but on bench/planner.py's own five 6-7 instead of 7-8 cycles still has median 7 (three of them
+stopped at a change of 1.1-1.3e-4, just above the tolerance) and the median warm update was ~5 % slower
+(12.9 vs 13.6 ms, same process, four runs each), so the planner keeps one.
 """
 from __future__ import annotations
 
