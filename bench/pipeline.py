@@ -24,6 +24,10 @@ Prints, and with --json as one JSON object on the last line:
 - cpu_percent: each service's CPU time over the run, in % of one core (the machine has two);
 - ate_rmse_m: the localiser's poses against the replayed ground truth (a latency cut must not cost
   accuracy).
+
+OUT/latency_by_frame.json holds every posed frame's latency, its time in the run and its stage durations:
+whether the tail is start-up, a stretch of the run where everything slows (CPU taken by other work) or
+one stage.
 """
 from __future__ import annotations
 
