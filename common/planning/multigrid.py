@@ -399,6 +399,15 @@ def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc,
                 vc[k] += c
         dgc[a] += dsum
         fc[a] += ex * f[i]
+    _normalise_coarse_rows(nc, m, dgc, fc, vc, cptr, S, sc, r, w)
+
+
+@njit(cache=True)
+def _normalise_coarse_rows(nc, m, dgc, fc, vc, cptr, S, sc, r, w):
+    """The end of a Galerkin coarse-operator build (both the CSR and the fixed-width level-0 variant): each
+    coarse row divided by its aggregate's largest scale m, the coarse scales sc, and the coarse level's
+    residual at its starting point q = 1 and its GCR weights, which a K-cycle level needs on entry (here
+    for free instead of another pass there)."""
     for a in range(nc):
         inv = 1.0 / m[a]
         dgc[a] *= inv
@@ -408,8 +417,6 @@ def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc,
             vc[k] *= inv
             acc += vc[k]
         sc[a] = S[a] + 0.5 * np.log(m[a])
-        # the coarse level's residual at its starting point q = 1 and its GCR weights, which a K-cycle
-        # level needs on entry: here for free instead of another pass there
         r[a] = acc
         w[a] = 1.0 / (dgc[a] * dgc[a])
 
@@ -548,19 +555,7 @@ def _fine_restrict(x, nb, w4, f, E2, S, agg, emap4, cptr, sc, dgc, vc, fc, r, w)
                 vc[k] += c
         dgc[a] += dsum
         fc[a] += ex * f[p]
-    for a in range(nc):
-        inv = 1.0 / m[a]
-        dgc[a] *= inv
-        fc[a] *= inv
-        acc = fc[a] - dgc[a]
-        for k in range(cptr[a], cptr[a + 1]):
-            vc[k] *= inv
-            acc += vc[k]
-        sc[a] = S[a] + 0.5 * np.log(m[a])
-        # the coarse level's residual at its starting point q = 1 and its GCR weights, which a K-cycle
-        # level needs on entry: here for free instead of another pass there
-        r[a] = acc
-        w[a] = 1.0 / (dgc[a] * dgc[a])
+    _normalise_coarse_rows(nc, m, dgc, fc, vc, cptr, S, sc, r, w)
 
 
 @njit(cache=True)
