@@ -1,0 +1,234 @@
+"""The multigrid's hierarchy: level 0's operator from the planner's grid, the aggregation of each level
+into the next, the coarse sparsity patterns, and their flattening for the numba cycle (multigrid.py).
+
+Split from multigrid.py, which keeps the cycle and the solver: this part depends only on which cells are
+ACTIVE (and level 0's weights on the log scale), so it runs once per map change, not per cycle.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from . import harmonic as hk
+
+
+@njit(cache=True)
+def fine_system(state, s):
+    """Level-0 operator from the padded state and log scale: (cells, nb, w4, f, ip, ind, cy, cx).
+
+    ``cells`` are the flat indices of the ACTIVE cells (ascending, = compact numbering), ``cy, cx``
+    their padded row / column.  The operator is stored twice: as a fixed-width (ELL) table — ``nb[i, d]``
+    the compact index of the neighbour in direction d (east, west, south, north), ``w4[i, d]`` its weight
+    ``exp(s_j - s_i) / 4``, a missing neighbour pointing at i itself with weight 0 — which the cycle's
+    level-0 kernels run on (half the time of CSR: no row pointers, a fixed four-term sum), and as the
+    CSR pattern ``ip, ind`` (the ELL entries that are not missing, in the same order) from which the
+    hierarchy is built.  One exponential per edge between ACTIVE cells: the east / south weight, whose
+    reciprocal is the neighbour's west / north weight."""
+    h, w = state.shape
+    stf = state.ravel()
+    sf = s.ravel()
+    comp = np.empty(h * w, dtype=np.int64)
+    n = 0
+    for i in range(h * w):
+        comp[i] = n
+        n += stf[i] == hk.ACTIVE
+    cells = np.empty(n, dtype=np.int64)
+    cy = np.empty(n, dtype=np.int64)
+    cx = np.empty(n, dtype=np.int64)
+    nb = np.empty((n, 4), dtype=np.int64)
+    w4 = np.empty((n, 4))
+    f = np.empty(n)
+    ip = np.empty(n + 1, dtype=np.int64)
+    ind = np.empty(4 * n, dtype=np.int64)
+    ip[0] = 0
+    m = 0
+    k = 0
+    for y in range(1, h - 1):
+        for x in range(1, w - 1):
+            i = y * w + x
+            if stf[i] != hk.ACTIVE:
+                continue
+            cells[k] = i
+            cy[k] = y
+            cx[k] = x
+            f[k] = 0.0
+            for d in range(4):
+                j = i + 1 if d == 0 else (i - 1 if d == 1 else (i + w if d == 2 else i - w))
+                st = stf[j]
+                if st == hk.ACTIVE:
+                    kj = comp[j]
+                    nb[k, d] = kj
+                    if d == 0 or d == 2:        # later in the order: set both directions of the edge
+                        e = np.exp(sf[j] - sf[i])
+                        w4[k, d] = 0.25 * e
+                        w4[kj, d + 1] = 0.25 / e
+                    ind[m] = kj
+                    m += 1
+                else:
+                    nb[k, d] = k
+                    w4[k, d] = 0.0
+                    if st == hk.TARGET:
+                        f[k] += 0.25 * np.exp(sf[j] - sf[i])
+            k += 1
+            ip[k] = m
+    return cells, nb, w4, f, ip, ind[:m].copy(), cy, cx
+
+
+@njit(cache=True)
+def _find(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(cache=True)
+def aggregate(indptr, indices, cy, cx):
+    """Aggregate of every node: the 4-connected pieces of the nodes sharing a parent cell
+    (cy // 2, cx // 2) — so an aggregate never joins cells on two sides of a wall.  Returns
+    (agg, number of aggregates, their cy, their cx)."""
+    n = cy.size
+    parent = np.arange(n)
+    for i in range(n):
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            if cy[j] // 2 == cy[i] // 2 and cx[j] // 2 == cx[i] // 2:
+                ri = _find(parent, i)
+                rj = _find(parent, j)
+                if ri != rj:
+                    parent[max(ri, rj)] = min(ri, rj)
+    agg = np.full(n, -1, dtype=np.int64)
+    nc = 0
+    for i in range(n):
+        r = _find(parent, i)
+        if agg[r] < 0:
+            agg[r] = nc
+            nc += 1
+        agg[i] = agg[r]
+    ccy = np.empty(nc, dtype=np.int64)
+    ccx = np.empty(nc, dtype=np.int64)
+    for i in range(n):
+        ccy[agg[i]] = cy[i] // 2
+        ccx[agg[i]] = cx[i] // 2
+    return agg, nc, ccy, ccx
+
+
+@njit(cache=True)
+def coarse_pattern(indptr, indices, agg, nc):
+    """CSR pattern (cptr, cind) of the aggregate graph and, for every fine entry, the coarse entry it
+    adds to (-1: both ends in one aggregate, it goes to the diagonal).  O(nnz), no sorting."""
+    n = agg.size
+    # nodes grouped by aggregate (counting sort)
+    start = np.zeros(nc + 1, dtype=np.int64)
+    for i in range(n):
+        start[agg[i] + 1] += 1
+    for a in range(nc):
+        start[a + 1] += start[a]
+    order = np.empty(n, dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        order[fill[agg[i]]] = i
+        fill[agg[i]] += 1
+    mark = np.full(nc, -1, dtype=np.int64)     # coarse entry of neighbour aggregate b in the current row
+    cptr = np.zeros(nc + 1, dtype=np.int64)
+    cind = np.empty(indices.size, dtype=np.int64)
+    emap = np.full(indices.size, -1, dtype=np.int64)
+    m = 0
+    for a in range(nc):
+        row0 = m
+        for k in range(start[a], start[a + 1]):
+            i = order[k]
+            for e in range(indptr[i], indptr[i + 1]):
+                b = agg[indices[e]]
+                if b == a:
+                    continue
+                if mark[b] < row0:
+                    mark[b] = m
+                    cind[m] = b
+                    m += 1
+                emap[e] = mark[b]
+        cptr[a + 1] = m
+    return cptr, cind[:m].copy(), emap
+
+
+def pad_rows4(cptr, cind, emap):
+    """A CSR pattern whose rows have at most 4 entries, padded to exactly 4 (a padding entry points at its
+    own row and its value stays 0), and the finer level's entry map moved to the padded positions.  The
+    kernels run such a level with a fixed four-term row (``four``), which the compiler unrolls: on the
+    ELL-like grid of level 1 (every row <= 4 entries) the CSR row loop was the slow part."""
+    nc = cptr.size - 1
+    deg = np.diff(cptr)
+    rows = np.repeat(np.arange(nc), deg)
+    pos = np.arange(cind.size) - cptr[:-1][rows] + 4 * rows
+    ind4 = np.repeat(np.arange(nc, dtype=np.int64), 4)
+    ind4[pos] = cind
+    emap4 = np.where(emap >= 0, pos[np.maximum(emap, 0)], -1)
+    return np.arange(0, 4 * nc + 1, 4, dtype=np.int64), ind4, emap4
+
+
+class Hierarchy:
+    """Aggregates and coarse sparsity patterns of every level, flattened for the numba cycle.  Depends
+    only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle.  Level 0's
+    own entries are not copied into the flat arrays (the cycle reads level 0 from the solver's ELL
+    table; ``nnz[0]`` is 0 there): ``emap0`` maps its CSR entries to level 1's.  Copying them cost
+    ~1 ms per map change (3 MB of fresh memory)."""
+
+    def __init__(self, indptr, indices, cy, cx, coarsest: int = 48):
+        ips, inds, aggs, emaps, sizes = [indptr], [np.zeros(0, np.int64)], [], [], [cy.size]
+        pads = [False]
+        ip, ind = indptr, indices
+        while cy.size > coarsest:
+            agg, nc, cy2, cx2 = aggregate(ip, ind, cy, cx)
+            shift = 1
+            while nc == cy.size and shift < 62:
+                # No node shares its parent cell with a neighbour (a pathological map): look at coarser
+                # parent cells until something merges (the whole grid is one connected piece at last),
+                # so the directly solved coarsest level stays small.
+                agg, nc, cy2, cx2 = aggregate(ip, ind, cy >> shift, cx >> shift)
+                shift += 1
+            if nc == cy.size:
+                break
+            cptr, cind, emap = coarse_pattern(ip, ind, agg, nc)
+            pad = bool(cind.size) and int(np.diff(cptr).max()) <= 4
+            if pad:
+                cptr, cind, emap = pad_rows4(cptr, cind, emap)
+            pads.append(pad)
+            aggs.append(agg)
+            emaps.append(emap)
+            ips.append(cptr)
+            inds.append(cind)
+            sizes.append(nc)
+            ip, ind, cy, cx = cptr, cind, cy2, cx2
+        self.levels = len(sizes)
+        self.pad4 = np.array(pads, dtype=np.bool_)      # level stored with exactly 4 entries per row
+        self.emap0 = emaps.pop(0) if emaps else np.zeros(0, np.int64)
+        emaps.insert(0, np.zeros(0, np.int64))
+        self.n = np.array(sizes, dtype=np.int64)
+        self.nnz = np.array([len(v) for v in inds], dtype=np.int64)
+        self.ip_off = np.concatenate([[0], np.cumsum(self.n + 1)]).astype(np.int64)
+        self.e_off = np.concatenate([[0], np.cumsum(self.nnz)]).astype(np.int64)
+        self.n_off = np.concatenate([[0], np.cumsum(self.n)]).astype(np.int64)
+        self.ip = np.concatenate(ips)
+        self.ind = np.concatenate(inds)
+        self.agg = np.concatenate(aggs + [np.zeros(0, np.int64)])
+        self.emap = np.concatenate(emaps + [np.zeros(0, np.int64)])
+
+    def arrays(self):
+        return (self.levels, self.n, self.nnz, self.ip_off, self.e_off, self.n_off, self.ip, self.ind,
+                self.agg, self.emap, self.pad4)
+
+
+@njit(cache=True)
+def ell_emap(nb, emap):
+    """``coarse_pattern``'s entry map moved from level 0's CSR entries to its ELL slots (-1: missing
+    neighbour or same aggregate, i.e. the diagonal)."""
+    n = nb.shape[0]
+    out = np.full((n, 4), -1, dtype=np.int64)
+    e = 0
+    for i in range(n):
+        for d in range(4):
+            if nb[i, d] != i:
+                if emap.size:
+                    out[i, d] = emap[e]
+                e += 1
+    return out
