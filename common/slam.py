@@ -372,24 +372,8 @@ class FlyLocaliser:
             return register_planar(points, B, plane="body", window=tuple(win), eps=c.eps, weights_a=fit / fit.max(),
                                    stereo=self.stereo, seed=int(stamp_ns % (2**31)), lattice=lattice,
                                    curvature=False)   # the measurement model is registration_sigma (see _information)
-        hint = self._pinned_hint if tracking else np.zeros(3, bool)
-        if hint.any() and self._pinned_streak >= c.tracking_recheck_pinned:
-            hint = np.zeros(3, bool)               # try the full window again
         try:
-            if hint.any():
-                res, pinned = register(np.where(hint, 0.0, window)), hint.copy()
-            else:
-                res = register(window)
-                # A minimum on the window's edge in some parameters (typically along a corridor, where
-                # nothing pins the position) says nothing about them: pin them at the prediction and
-                # register the rest.
-                pinned = np.abs(res.params) > 0.98 * window if np.all(np.isfinite(res.params)) else np.zeros(3, bool)
-                if not res.ok and res.reason.startswith("minimum on the search window boundary") and not pinned.all():
-                    res = register(np.where(pinned, 0.0, window))
-                else:
-                    pinned = np.zeros(3, bool)
-            self._pinned_hint = pinned.copy()
-            self._pinned_streak = self._pinned_streak + 1 if hint.any() else 0
+            res, pinned = self._register_pinning_edges(register, window, tracking)
         except PopulationError as e:   # e.g. a degenerate map; odometry carries on
             return finish(T_pred, f"rejected: {e}", False, cov_pred)
         info = self._information(res)
@@ -411,6 +395,28 @@ class FlyLocaliser:
         cov[np.ix_([0, 1, 5], [0, 1, 5])] = cov3
         cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-6
         return finish(T_map_base, "ok", True, cov, res.delta)
+
+    def _register_pinning_edges(self, register, window: np.ndarray, tracking: bool):
+        """(result, pinned mask) of ``register(window)``.  A minimum on the window's edge in some
+        parameters (typically along a corridor, where nothing pins the position) says nothing about
+        them: they are pinned at the prediction and the rest registered again.  While tracking, what the
+        previous frame pinned is pinned from the start, except every ``tracking_recheck_pinned`` frames
+        (see LocaliserConfig)."""
+        hint = self._pinned_hint if tracking else np.zeros(3, bool)
+        if hint.any() and self._pinned_streak >= self.config.tracking_recheck_pinned:
+            hint = np.zeros(3, bool)               # try the full window again
+        if hint.any():
+            res, pinned = register(np.where(hint, 0.0, window)), hint
+        else:
+            res = register(window)
+            pinned = np.abs(res.params) > 0.98 * window if np.all(np.isfinite(res.params)) else np.zeros(3, bool)
+            if not res.ok and res.reason.startswith("minimum on the search window boundary") and not pinned.all():
+                res = register(np.where(pinned, 0.0, window))
+            else:
+                pinned = np.zeros(3, bool)
+        self._pinned_hint = pinned
+        self._pinned_streak = self._pinned_streak + 1 if hint.any() else 0
+        return res, pinned
 
     # ------------------------------------------------------------------------------ fusion
     def _information(self, res) -> np.ndarray | None:

@@ -395,26 +395,6 @@ def _fail(mode, k, reason, T=None, params=None, delta=float("nan"), **kw):
                               reason=reason, mode=mode, **kw)
 
 
-def _without_curvature(mode, k, T, p_best, d_best, ambiguity, ambiguity_ratio, refined, free, center, half,
-                       evals, marks, t0) -> RegistrationResult:
-    """The result of a registration asked for no curvature (``curvature=False``): the window-edge and
-    ambiguity checks only — no Hessian, flatness test or covariance (their ~3 ms is a third of a tracking
-    registration, and a caller with its own measurement model, the localiser, uses none of them)."""
-    timings = {f"{name}_ms": 1e3 * (t - t_prev) for (name, t), (_, t_prev) in zip(marks, [("", t0)] + marks)}
-    timings["total_ms"] = 1e3 * (time.perf_counter() - t0)
-    common = dict(T=T, params=p_best, delta=d_best, mode=mode, ambiguity=ambiguity, evaluations=evals,
-                  timings=timings)
-    at_edge = free & (np.abs(p_best - center) > 0.99 * half)
-    if np.any(at_edge):
-        return _fail(reason=f"minimum on the search window boundary in parameter(s) "
-                            f"{list(np.flatnonzero(at_edge))}: widen the window or improve the prior",
-                     k=k, **common)
-    if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
-        return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
-                            f"nearly as deep ({ambiguity:.2f} of the best's depth)", k=k, **common)
-    return RegistrationResult(covariance=np.full((k, k), np.nan), ok=True, reason="", **common)
-
-
 def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_counts, max_points,
               coarse_points, min_flies, flat_ratio, ambiguity_ratio, field_options, seed,
               objective="delta", local_radius=0.5, lattice_step=None, curvature=True):
@@ -490,6 +470,10 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     lo_b = np.where(free, -1.0, 0.0)
     hi_b = np.where(free, 1.0, 0.0)
 
+    def on_edge(p):
+        """Free parameters of p on the search window's edge."""
+        return free & (np.abs(p - center) > 0.99 * half)
+
     def polish(obj, p_start, maxiter, xtol, stop=None, H0=None, out=None, max_step=None):
         x0 = np.clip((p_start - center) / scale, -1, 1)
 
@@ -530,7 +514,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         # with the identity, as before the warm start
         if hinvs:
             q, v = polish(full, p, 60, 1e-3, H0=hinvs[0], max_step=0.5 * step)
-            if not np.any(free & (np.abs(q - center) > 0.99 * half)):
+            if not np.any(on_edge(q)):
                 return q, v
         return polish(full, p, 60, 1e-3)
     refined = [refine(p) for p, _ in distinct[:1] + rivals]
@@ -544,13 +528,58 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         ambiguity = float(np.clip(1.0 - (refined[1][1] - d_best) / max(contrast, 1e-300), 0, 1))
 
     marks.append(("refine", time.perf_counter()))
-    if not curvature:
-        return _without_curvature(mode, k, T, p_best, d_best, ambiguity, ambiguity_ratio, refined, free, center,
-                                  half, evals, marks, t0)
-    # --- curvature, covariance, checks
+    curv = None
+    if curvature:
+        curv = _curvature(mode, k, full, pose, p_best, fld.rc, radius)
+        evals += curv.evaluations
+        marks.append(("covariance", time.perf_counter()))
+    # wall-clock milliseconds per stage: setup (validation, subsets, lattice poses), field (build),
+    # lattice, polish, refine, covariance (Hessian and checks; absent without curvature), and the total
+    timings = {f"{name}_ms": 1e3 * (t - t_prev) for (name, t), (_, t_prev) in zip(marks, [("", t0)] + marks)}
+    timings["total_ms"] = 1e3 * (time.perf_counter() - t0)
+    common = dict(T=T, params=p_best, delta=d_best, mode=mode, ambiguity=ambiguity, evaluations=evals,
+                  timings=timings, hessian=None if curv is None else curv.H,
+                  flatness=float("nan") if curv is None else curv.flatness)
+    at_edge = on_edge(p_best)
+    if np.any(at_edge):
+        return _fail(reason=f"minimum on the search window boundary in parameter(s) "
+                            f"{list(np.flatnonzero(at_edge))}: widen the window or improve the prior",
+                     k=k, **common)
+    if curv is not None and curv.eig[0] <= 0:
+        return _fail(reason="not a minimum: the Hessian of δ is not positive definite (flat or saddle)",
+                     k=k, **common)
+    if curv is not None and curv.flatness < flat_ratio:
+        v = np.linalg.eigh(curv.Hs)[1][:, 0]
+        return _fail(reason=f"flat minimum: curvature along {np.round(v, 2).tolist()} is "
+                            f"{curv.flatness:.2g} of the strongest (threshold {flat_ratio})", k=k, **common)
+    if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
+        return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
+                            f"nearly as deep ({ambiguity:.2f} of the best's depth)", k=k, **common)
+    if curv is None:   # curvature=False: the caller has its own measurement model
+        return RegistrationResult(covariance=np.full((k, k), np.nan), ok=True, reason="", **common)
+    Hi = np.linalg.inv(curv.H)
+    cov = 2.0 * Hi @ (curv.Jf.T @ curv.Jf) @ Hi       # ×2: B's flies are as noisy as A's (see module doc)
+    cov = 0.5 * (cov + cov.T)
+    return RegistrationResult(covariance=cov, ok=True, reason="", **common)
+
+
+@dataclass
+class _Curvature:
+    H: np.ndarray          # Hessian of the objective in the pose params
+    Hs: np.ndarray         # the same with rotations as metres of arc at the populations' radius
+    eig: np.ndarray        # eigenvalues of Hs
+    flatness: float        # eig_min / the stiffest curvature (see the module docstring)
+    Jf: np.ndarray         # per-fly gradients, centred (for the sandwich covariance)
+    evaluations: int
+
+
+def _curvature(mode, k, full, pose, p_best, rc, radius) -> _Curvature:
+    """The minimum's curvature: the Hessian (gradient differences, or values at a cusp), its scaled
+    eigenvalues, the flatness against the stiffest curvature, and the per-fly gradients."""
+    evals = 0
     L = max(radius, 1e-9)
-    fd = np.array([min(0.25 * fld.rc, 0.02) if (mode == "6dof" and i < 3) or (mode in PLANES and i < 2)
-                   else min(0.25 * fld.rc, 0.02) / L for i in range(k)])
+    fd = np.array([min(0.25 * rc, 0.02) if (mode == "6dof" and i < 3) or (mode in PLANES and i < 2)
+                   else min(0.25 * rc, 0.02) / L for i in range(k)])
     H = np.zeros((k, k))
     for i in range(k):
         e = np.zeros(k)
@@ -590,32 +619,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         evals += 6
     stiff = max(eig[-1], float(np.linalg.eigvalsh(H3)[-1]))
     flatness = float(eig[0] / stiff) if stiff > 0 else float("nan")
-    marks.append(("covariance", time.perf_counter()))
-    # wall-clock milliseconds per stage: setup (validation, subsets, lattice poses), field (build),
-    # lattice, polish, refine, covariance (Hessian and checks), and the total
-    timings = {f"{name}_ms": 1e3 * (t - t_prev) for (name, t), (_, t_prev) in zip(marks, [("", t0)] + marks)}
-    timings["total_ms"] = 1e3 * (time.perf_counter() - t0)
-    common = dict(T=T, params=p_best, delta=d_best, mode=mode, hessian=H, flatness=flatness,
-                  ambiguity=ambiguity, evaluations=evals, timings=timings)
-    at_edge = free & (np.abs(p_best - center) > 0.99 * half)
-    if np.any(at_edge):
-        return _fail(reason=f"minimum on the search window boundary in parameter(s) "
-                            f"{list(np.flatnonzero(at_edge))}: widen the window or improve the prior",
-                     k=k, **common)
-    if eig[0] <= 0:
-        return _fail(reason="not a minimum: the Hessian of δ is not positive definite (flat or saddle)",
-                     k=k, **common)
-    if flatness < flat_ratio:
-        v = np.linalg.eigh(Hs)[1][:, 0]
-        return _fail(reason=f"flat minimum: curvature along {np.round(v, 2).tolist()} is "
-                            f"{flatness:.2g} of the strongest (threshold {flat_ratio})", k=k, **common)
-    if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
-        return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
-                            f"nearly as deep ({ambiguity:.2f} of the best's depth)", k=k, **common)
-    Hi = np.linalg.inv(H)
-    cov = 2.0 * Hi @ (Jf.T @ Jf) @ Hi       # ×2: B's flies are as noisy as A's (see module doc)
-    cov = 0.5 * (cov + cov.T)
-    return RegistrationResult(covariance=cov, ok=True, reason="", **common)
+    return _Curvature(H, Hs, eig, flatness, Jf, evals)
 
 
 @dataclass
