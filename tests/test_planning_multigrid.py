@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from common.planning import harmonic as hk
-from common.planning.multigrid import LogFieldSolver, fine_scales, pad_rows4
+from common.planning.multigrid import LogFieldSolver, _band_solve, fine_scales, interp_table, pad_rows4
+from common.planning.multigrid_hierarchy import BAND_MAX, band_order
 from tests.test_planning_solver import direct_log_phi
 
 
@@ -129,3 +130,78 @@ def test_more_level0_sweeps_converge_to_the_same_field_in_fewer_cycles():
         cycles[sweeps] = k
         assert np.abs(log_phi(solver, state.shape)[act] - ref[act]).max() < 1e-8
     assert cycles[2] < cycles[1]
+
+
+def serpentine_state(h=60, w=64, width=6):
+    """Padded state of one long winding corridor: walls every ``width + 1`` rows, open at alternate ends."""
+    state = room(h, w)
+    for k, y in enumerate(range(width + 1, h, width + 1)):
+        x0, x1 = (1, w - 3) if k % 2 == 0 else (4, w + 1)
+        state[y, x0:x1] = hk.BLOCKED
+    return state
+
+
+def test_a_corridor_maps_hierarchy_stops_at_a_narrow_banded_level_and_still_solves_exactly():
+    """A winding corridor's coarse levels are chains: the hierarchy stops at the first one whose
+    couplings fit a narrow band (well before the 16-unknown floor) and solves it exactly, and the
+    planner's cycle (K-cycles on level 1 only) converges to the direct solve of the map."""
+    state = serpentine_state()
+    solver = LogFieldSolver(state, cold_scale(state), coarsest=16)
+    assert solver.hier.levels > 1 and solver.hier.n[-1] > 16
+    assert solver.hier.band <= BAND_MAX
+    for cycles in range(1, 61):
+        if solver.cycle(2.0, 1, 1) < 1e-11:
+            break
+    assert cycles < 40
+    act = state == hk.ACTIVE
+    assert np.abs(log_phi(solver, state.shape)[act] - direct_log_phi(state)[act]).max() < 1e-8
+
+
+def test_banded_elimination_in_the_bandwidth_order_matches_a_dense_solve():
+    """The coarsest level's solve: a chain-like M-matrix given in a scrambled node order."""
+    rng = np.random.default_rng(3)
+    n = 60
+    perm = rng.permutation(n)                          # node perm[k] is the k-th along a 2-wide ladder
+    rows = [[] for _ in range(n)]
+    for k in range(n):
+        for dk in (1, 2):
+            if k + dk < n:
+                a, b = perm[k], perm[k + dk]
+                rows[a].append(b), rows[b].append(a)
+    ip = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).astype(np.int64)
+    ind = np.concatenate([np.array(sorted(r), np.int64) for r in rows])
+    vals = rng.uniform(0.1, 1.0, ind.size)
+    dg = np.array([vals[ip[i]:ip[i + 1]].sum() for i in range(n)]) * rng.uniform(1.0, 1.5, n) + 1e-3
+    f = rng.uniform(0.0, 1.0, n)
+    rank, b = band_order(ip, ind)
+    assert b <= 4                                      # the ladder's order is found again
+    out = np.empty(n)
+    _band_solve(dg, ip, ind, vals, f, rank, b, np.empty((n, 2 * b + 1)), np.empty(n), out)
+    A = np.diag(dg)
+    for i in range(n):
+        A[i, ind[ip[i]:ip[i + 1]]] -= vals[ip[i]:ip[i + 1]]
+    assert np.allclose(out, np.linalg.solve(A, f), rtol=1e-12, atol=0)
+
+
+def test_interpolated_coarse_factors_never_reach_across_a_wall_and_follow_blocked_cells():
+    """Level 0's bilinear prolongation reads the neighbouring 2 x 2 blocks' factors only through live
+    couplings: never from the other side of a one-cell wall, and, once ``block`` has cut an object's
+    cells out, exactly as a table built afresh for the new couplings."""
+    state = room(20, 21, boxes=[(1, 17, 10, 11)])      # a wall at padded column 10, open at the bottom
+    solver = LogFieldSolver(state, cold_scale(state), coarsest=8)
+    agg = solver.hier.agg[:solver.size]
+    cx = solver.cells % state.shape[1]
+    cy = solver.cells // state.shape[1]
+    upper = cy < 17                                    # where the wall separates the two sides
+    side = np.where(cx < 10, 0, 1)
+    for i in np.flatnonzero(upper):
+        for a in solver._interp[i]:
+            members = agg == a
+            assert np.all(side[members & upper] == side[i]), f"cell {i} reads a factor across the wall"
+    obj = [(y, x) for y in range(4, 8) for x in range(4, 8)]
+    flat = np.array(sorted(y * state.shape[1] + x for y, x in obj))
+    solver.block(flat)
+    assert np.array_equal(solver._interp, interp_table(solver.nb, solver.w4, cy, cx, agg))
+    for y, x in ((12, 4), (13, 15)):                  # single cells: their four neighbours touch no other
+        solver.block(np.array([y * state.shape[1] + x]))
+        assert np.array_equal(solver._interp, interp_table(solver.nb, solver.w4, cy, cx, agg))

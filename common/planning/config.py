@@ -47,7 +47,8 @@ class PlannerConfig:
                                          # counted as converged
     mg_over_correction: float = 2.0      # exponent of the fine level's coarse factor (see multigrid.py)
     mg_smoothing_sweeps: int = 1         # Gauss-Seidel sweeps before and after each coarse correction
-    mg_krylov_levels: int = 99           # coarse levels 1..k use K-cycles (two cycles + residual minimisation)
+    mg_krylov_levels: int = 1            # coarse levels 1..k use K-cycles (two cycles + residual minimisation);
+                                         # deeper levels V-cycles (1: fastest since the banded coarsest solve)
     mg_coarsest: int = 48                # unknowns at which the hierarchy stops (solved directly)
     max_cycles: int = 200
     # Controller.

@@ -43,8 +43,8 @@ that skips its second repetition when the first reduced the residual enough (Not
 cycles on some maps, more on others; 3 x 3 or 4 x 4 aggregates below level 1 — 1.5-5x more cycles; two
 smoothing sweeps on level 0 — one cycle fewer, no faster; a wider LINEAR_BAND — slower cold starts.
 
-Cost (200 x 200, 27,500 unknowns, CPU time on a loaded 2-core machine): a cycle ~1.8 ms — level 0
-~0.45 ms (two sweeps, the Galerkin operator of level 1), the K-cycle of level 1 (7,400 unknowns, two
+Cost after the first attempt (200 x 200, 27,500 unknowns, CPU time, loaded machine): a cycle ~1.8 ms —
+level 0 ~0.45 ms (two sweeps, the Galerkin operator of level 1), the K-cycle of level 1 (7,400 unknowns, two
 repetitions) ~0.55 ms, levels 2-6 ~0.7 ms (each level twice as often as the one above); set-up of a new
 map (``fine_system`` and the hierarchy) ~2.8 ms.  What made it so: level 0 on a fixed-width ELL table
 (a CSR row loop cost twice as much), Gauss-Seidel multiplying by ``1 / dg`` computed ahead of the row
@@ -76,6 +76,24 @@ measured 1.56-1.65 ms either way).  Two level-0 sweeps before and after the coar
 objects, but on bench/planner.py's own five 6-7 instead of 7-8 cycles still has median 7 (three of them
 stopped at a change of 1.1-1.3e-4, just above the tolerance) and the median warm update was ~5 % slower
 (12.9 vs 13.6 ms, same process, four runs each), so the planner keeps one.
+
+Third attempt (issue #7: 12.4 -> 9.0 ms at 200 x 200, 7 -> 6 cycles).  Two changes, each of which alone
+gained little:
+- Level 0's coarse factors are interpolated bilinearly (``interp_table``, ``_interp_factors``) instead of
+  applied per aggregate: in the linear phase each cycle then cuts the error ~10x instead of ~6x, but the
+  warm updates still took 6-7 cycles of the same cost (the K-cycles below dominate: ~1.1 of 1.55 ms).
+- The hierarchy stops at the first level that fits a narrow band (multigrid_hierarchy.BAND_MAX) and
+  solves it exactly by banded elimination (``_band_solve``).  On the corridor maps that is a chain-like
+  level of a few hundred unknowns, which the K-cycles of four more levels used to solve inexactly.
+With that exact level, K-cycles on level 1 alone (``PlannerConfig.mg_krylov_levels = 1``: levels 2.. are
+plain V-cycles with the over-corrected factor) converge as fast as K-cycles everywhere did, at
+~1.2 instead of ~1.5 ms per cycle; without it, K-cycles on level 1 only needed up to 15 cycles at
+400 x 400.  Warm updates on the bench's five objects: 6, 6, 6, 6, 7 cycles at 200 x 200 (7, 7, 6, 6, 6
+at 400), the largest log-phi error 1.1e-5.  Also measured and rejected: the bilinear interpolation on
+the coarse levels too (no fewer cycles), in log space or without the diagonal block (same counts),
+over-correction 1.8-2.5 with it (same or more), OVER_CLIP e^0.5-e^3 (same), plain V-cycles everywhere
+(the over-correction compounds over the levels: diverges), K-cycles on levels 1-2 (one cycle more
+often, slower).
 """
 from __future__ import annotations
 
@@ -266,17 +284,65 @@ def _fine_gs_saving(x, prev, nb, w4, f):
 
 
 @njit(cache=True)
-def _fine_prolong_gs_back(x, nb, w4, f, q, agg, prev, measure):
-    """The end of a cycle in one pass: ``x *= q[agg]`` (the coarse factors), a backward ``_fine_gs`` and
-    ``_max_rel_change`` against prev.  Going backward, the east and south neighbours (higher compact
-    index) are final already; the west and north ones are read times their factor.  The same arithmetic
-    as the three passes, in the same order (identical results); returns the largest relative change
-    (0 unless ``measure``: more sweeps follow)."""
+def _interp_rows(rows, nb, w4, cy, cx, agg, tab):
+    """Rows ``rows`` of ``interp_table`` (re)computed in place."""
+    for k in range(rows.size):
+        i = rows[k]
+        a = agg[i]
+        dh = 1 if cx[i] % 2 == 0 else 0         # a 2 x 2 block's west column looks west, its east one east
+        dv = 3 if cy[i] % 2 == 0 else 2         # its north row looks north, its south row south
+        jh = nb[i, dh] if w4[i, dh] > 0.0 else -1
+        jv = nb[i, dv] if w4[i, dv] > 0.0 else -1
+        jd = -1
+        if jh >= 0 and w4[jh, dv] > 0.0:
+            jd = nb[jh, dv]
+        elif jv >= 0 and w4[jv, dh] > 0.0:
+            jd = nb[jv, dh]
+        tab[i, 0] = agg[jh] if jh >= 0 else a
+        tab[i, 1] = agg[jv] if jv >= 0 else a
+        tab[i, 2] = agg[jd] if jd >= 0 else a
+
+
+def interp_table(nb, w4, cy, cx, agg):
+    """Level 0's smoothed (bilinear) prolongation: for every cell the aggregates of the three nearest
+    other 2 x 2 blocks — beside it, above or below it, and diagonally — reached through live couplings
+    only (a wall, the grid's edge or a cell cut out by ``block`` in the way: its own aggregate instead),
+    so a factor is never interpolated across a wall.  See ``_interp_factors``."""
+    tab = np.empty((nb.shape[0], 3), dtype=np.int64)
+    _interp_rows(np.arange(nb.shape[0]), nb, w4, cy, cx, agg, tab)
+    return tab
+
+
+def update_interp_table(tab, dead, nb, w4, cy, cx, agg):
+    """``interp_table`` brought up to date after ``_block_cells`` cut the cells ``dead`` out: only rows
+    within two couplings of a removed cell can change (their neighbour, or the diagonal path through
+    it, is gone)."""
+    ring1 = nb[dead]
+    _interp_rows(np.unique(np.concatenate([ring1.ravel(), nb[ring1].ravel()])), nb, w4, cy, cx, agg, tab)
+
+
+@njit(cache=True)
+def _interp_factors(q, agg, tab, Q):
+    """The coarse factors q interpolated bilinearly to level 0's cells: 9/16 of the cell's own
+    aggregate, 3/16 of each of the two beside / above it, 1/16 of the diagonal one (``interp_table``).
+    Piecewise-constant factors leave a step at every block edge that one post-smoothing sweep cannot
+    remove."""
+    for i in range(agg.size):
+        Q[i] = 0.5625 * q[agg[i]] + 0.1875 * (q[tab[i, 0]] + q[tab[i, 1]]) + 0.0625 * q[tab[i, 2]]
+
+
+@njit(cache=True)
+def _fine_prolong_gs_back(x, nb, w4, f, Q, prev, measure):
+    """The end of a cycle in one pass: ``x *= Q`` (the interpolated coarse factors), a backward
+    ``_fine_gs`` and ``_max_rel_change`` against prev.  Going backward, the east and south neighbours
+    (higher compact index) are final already; the west and north ones are read times their factor.  The
+    same arithmetic as the three passes, in the same order (identical results); returns the largest
+    relative change (0 unless ``measure``: more sweeps follow)."""
     worst = 0.0
     for i in range(x.size - 1, -1, -1):
         jw = nb[i, 1]
         jn = nb[i, 3]
-        v = (f[i] + w4[i, 1] * (x[jw] * q[agg[jw]]) + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * (x[jn] * q[agg[jn]])) \
+        v = (f[i] + w4[i, 1] * (x[jw] * Q[jw]) + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * (x[jn] * Q[jn])) \
             + w4[i, 0] * x[nb[i, 0]]
         x[i] = v
         if measure:
@@ -386,15 +452,38 @@ def _over_correct(q, over):
 
 
 @njit(cache=True)
-def _dense_solve(dg, ip, ind, vals, f):
-    """Gaussian elimination without pivoting (an M-matrix needs none) of the coarsest level."""
+def _band_solve(dg, ip, ind, vals, f, rank, b, A, rhs, out):
+    """The coarsest level solved by banded Gaussian elimination without pivoting (an M-matrix needs
+    none) in the bandwidth-reducing order ``rank`` (node i is row rank[i]; |rank i - rank j| <= b for
+    every coupling): O(n b^2) instead of the dense O(n^3).  ``A`` (n, 2b+1) and ``rhs`` (n,) are
+    scratch; entry (r, c) of the permuted matrix is A[r, c - r + b]."""
     n = dg.size
-    A = np.zeros((n, n))
+    A[:, :] = 0.0
     for i in range(n):
-        A[i, i] = dg[i]
+        r = rank[i]
+        A[r, b] = dg[i]
+        rhs[r] = f[i]
         for e in range(ip[i], ip[i + 1]):
-            A[i, ind[e]] -= vals[e]
-    return _eliminate(A, f.copy())
+            j = ind[e]
+            if j != i:
+                A[r, rank[j] - r + b] -= vals[e]
+    for k in range(n):
+        inv = 1.0 / A[k, b]
+        top = min(b, n - 1 - k)
+        for t in range(1, top + 1):
+            i = k + t
+            m = A[i, b - t] * inv
+            if m != 0.0:
+                for j in range(1, top + 1):
+                    A[i, b - t + j] -= m * A[k, b + j]
+                rhs[i] -= m * rhs[k]
+    for k in range(n - 1, -1, -1):
+        acc = rhs[k]
+        for j in range(1, min(b, n - 1 - k) + 1):
+            acc -= A[k, b + j] * rhs[k + j]
+        rhs[k] = acc / A[k, b]
+    for i in range(n):
+        out[i] = max(rhs[rank[i]], 1e-300)
 
 
 @njit(cache=True)
@@ -563,15 +652,17 @@ def _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D
 
 @njit(cache=True)
 def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1, EB, SB,
-           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev, PAD, nu0):
+           over_correction, kdepth, nu, nb, w4, emap4, E0, S0, prev, PAD, nu0, tab, RANK, BAND, BA, BR):
     """One cycle from the fine level, written as a loop over an explicit level pointer (numba cannot
     cache a recursive function); returns the largest relative change of phi it made.  Level 0 (its own
     ELL kernels, ``nb, w4``) and levels deeper than ``kdepth`` do one repetition: pre-smooth, coarse
-    factor q solved at the next level, ``x *= q ** over_correction``, post-smooth.  Levels 1..kdepth are
+    factor q solved at the next level, ``x *= q ** over_correction`` (on level 0 interpolated bilinearly
+    between aggregates, ``tab``), post-smooth.  Levels 1..kdepth are
     K-cycles: two repetitions (no over-correction) combined by two GCR steps that minimise the relative
     residual, which makes the under-sized piecewise-constant corrections exact in their span.  The
-    coarsest level is solved directly.  All levels' arrays live in the flat buffers at offsets NO
-    (nodes) / EO (entries); level 0's operator is only in ``nb, w4`` (its VALS slice is scratch)."""
+    coarsest level is solved directly (``_band_solve``).  All levels' arrays live in the flat buffers at
+    offsets NO (nodes) / EO (entries); level 0's operator is only in ``nb, w4`` (its VALS slice is
+    scratch)."""
     n0 = NN[0]
     x0 = X[:n0]
     rep = np.zeros(L, dtype=np.int64)
@@ -587,10 +678,8 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
     while True:
         if l == L - 1:
             n, no, eo = NN[l], NO[l], EO[l]
-            sol = _dense_solve(DG[no:no + n], IP[PO[l]:PO[l] + n + 1], IND[eo:eo + NNZ[l]],
-                               VALS[eo:eo + NNZ[l]], F[no:no + n])
-            for i in range(n):
-                X[no + i] = max(sol[i], 1e-300)
+            _band_solve(DG[no:no + n], IP[PO[l]:PO[l] + n + 1], IND[eo:eo + NNZ[l]], VALS[eo:eo + NNZ[l]],
+                        F[no:no + n], RANK, BAND, BA, BR, X[no:no + n])
             l -= 1
             entering = False
             continue
@@ -608,7 +697,14 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
         elif l == 0:
             q = X[n0:n0 + NN[1]]
             _over_correct(q, over_correction)
-            agg0 = AGG[:n0]
+            Q = XS[:n0]             # level 0 has no repetition to remember: its XS slice is scratch
+            _interp_factors(q, AGG[:n0], tab, Q)
+            if nu0 == 1:
+                return _fine_prolong_gs_back(x0, nb, w4, F[:n0], Q, prev, True)
+            _fine_prolong_gs_back(x0, nb, w4, F[:n0], Q, prev, False)
+            for _ in range(nu0 - 2):
+                _fine_gs(x0, nb, w4, F[:n0], False)
+            return _fine_gs_back_change(x0, nb, w4, F[:n0], prev)
             if nu0 == 1:
                 return _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev, True)
             _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev, False)
@@ -735,9 +831,12 @@ class LogFieldSolver:
         reused when large enough — fresh memory costs a page fault per 4 kB on first touch, ~1 ms for
         the ~5 MB of a 200 x 200 map (every buffer is written before it is read)."""
         cells, nb, w4, f, ip, ind, cy, cx = fine_system(state, s_padded)
-        self.cells, self.nb, self.w4 = cells, nb, w4
+        self.cells, self.nb, self.w4, self._cy, self._cx = cells, nb, w4, cy, cx
         self.hier = Hierarchy(ip, ind, cy, cx, coarsest)
         self.emap4 = ell_emap(nb, self.hier.emap0)
+        # level 0's bilinear prolongation (none without a coarser level)
+        self._interp = (interp_table(nb, w4, cy, cx, self.hier.agg[:cells.size]) if self.hier.levels > 1
+                        else np.zeros((0, 3), np.int64))
         n, nodes, entries = cells.size, int(self.hier.n.sum()), int(self.hier.nnz.sum())
         # Every level's arrays in flat buffers (offsets in the hierarchy); level 0's are slices of them,
         # taken on access (stored views would come apart under copy.deepcopy).
@@ -754,6 +853,8 @@ class LogFieldSolver:
         self.f[:] = f
         self._buf["DG"][:n] = 1.0
         self._prev = np.empty(n)
+        self._band_a = np.empty((self.hier.rank.size, 2 * self.hier.band + 1))    # the coarsest level's
+        self._band_r = np.empty(self.hier.rank.size)                              # elimination scratch
         self.dead = 0           # cells cut out by ``block`` since the hierarchy was built
         self._scales = None     # level-0 constants of the coarse operator (fine_scales), until the next rebase
 
@@ -792,6 +893,9 @@ class LogFieldSolver:
         if idx.size and (idx.max() >= self.cells.size or not np.array_equal(self.cells[idx], flat_cells)):
             raise ValueError("LogFieldSolver.block: every cell to block must be one of the solver's cells")
         self.dead += int(_block_cells(idx, self.nb, self.w4, self.f, self.x, self.s))
+        if self._interp.size:
+            update_interp_table(self._interp, idx, self.nb, self.w4, self._cy, self._cx,
+                                self.hier.agg[:self.size])
         if self._scales is not None and self._scales[1].size:
             _rescale_dead_aggregates(self.s, self.hier.agg[:self.size], idx, *self._scales)
 
@@ -812,7 +916,8 @@ class LogFieldSolver:
         return float(_cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, b["S"], b["DG"], self._vals, b["F"],
                             b["X"], b["XS"], b["R"], b["W"], b["D"], b["D1"], b["V"], b["V1"], b["E"], b["SA"],
                             float(over_correction), int(krylov_levels), int(smoothing), self.nb, self.w4,
-                            self.emap4, *self._scales, self._prev, PAD, int(fine_sweeps)))
+                            self.emap4, *self._scales, self._prev, PAD, int(fine_sweeps), self._interp,
+                            self.hier.rank, self.hier.band, self._band_a, self._band_r))
 
     def residual(self) -> float:
         """Largest relative residual of level 0 (see ``relative_residual``)."""

@@ -7,7 +7,9 @@ ACTIVE (and level 0's weights on the log scale), so it runs once per map change,
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from . import harmonic as hk
 
@@ -166,6 +168,33 @@ def pad_rows4(cptr, cind, emap):
     return np.arange(0, 4 * nc + 1, 4, dtype=np.int64), ind4, emap4
 
 
+# The coarsest level.  The hierarchy stops at the first coarse level whose couplings fit in a band of
+# half-width BAND_MAX once its nodes are in reverse Cuthill-McKee order; the cycle solves that level
+# exactly by banded elimination, O(n b^2) (multigrid._band_solve).  Corridors give such levels early:
+# on the bench's 200 x 200 serpentine, level 3 (674 unknowns, b = 8), where the hierarchy used to go on
+# to 22 unknowns and the K-cycles' inexact solves of these chain-like levels were what needed K-cycles on
+# every level.  With the exact solve, K-cycles on level 1 alone converge as fast (PlannerConfig.
+# mg_krylov_levels).  An open room still stops at ~50-170 unknowns (b 5-8).  Measured (cycle cost,
+# K-cycles on level 1): BAND_MAX 4 / 8 / 12 -> 1.16 / 1.21 / 1.20 ms at 200 x 200, 4.6 / 4.4 / 5.0 ms
+# at 400 x 400 (where 12 takes level 3, 2,603 unknowns); without it (only the <= 48-unknown level, by
+# the same elimination) the 400 x 400 serpentine's warm updates need 6-15 cycles instead of 6-7.
+BAND_MAX = 8
+BAND_PROBE_MAX = 4000       # larger levels are not probed (scipy's ordering of them costs ~1 ms)
+
+
+def band_order(indptr, indices):
+    """(rank, b): reverse Cuthill-McKee position of every node and the half-bandwidth in that order."""
+    n = indptr.size - 1
+    if n <= 1:
+        return np.zeros(n, np.int64), 0
+    A = sp.csr_matrix((np.ones(indices.size), indices, indptr), shape=(n, n))
+    perm = reverse_cuthill_mckee((A + A.T).tocsr(), symmetric_mode=True)
+    rank = np.empty(n, np.int64)
+    rank[perm] = np.arange(n)
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    return rank, int(np.abs(rank[rows] - rank[indices]).max(initial=0))
+
+
 class Hierarchy:
     """Aggregates and coarse sparsity patterns of every level, flattened for the numba cycle.  Depends
     only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle.  Level 0's
@@ -173,11 +202,17 @@ class Hierarchy:
     table; ``nnz[0]`` is 0 there): ``emap0`` maps its CSR entries to level 1's.  Copying them cost
     ~1 ms per map change (3 MB of fresh memory)."""
 
-    def __init__(self, indptr, indices, cy, cx, coarsest: int = 48):
+    def __init__(self, indptr, indices, cy, cx, coarsest: int = 48, band_max: int = BAND_MAX):
         ips, inds, aggs, emaps, sizes = [indptr], [np.zeros(0, np.int64)], [], [], [cy.size]
         pads = [False]
         ip, ind = indptr, indices
+        rank, band = None, 0
         while cy.size > coarsest:
+            if len(sizes) > 1 and cy.size <= BAND_PROBE_MAX:
+                rank, band = band_order(ip, ind)
+                if band <= band_max:
+                    break
+                rank = None
             agg, nc, cy2, cx2 = aggregate(ip, ind, cy, cx)
             shift = 1
             while nc == cy.size and shift < 62:
@@ -199,6 +234,10 @@ class Hierarchy:
             inds.append(cind)
             sizes.append(nc)
             ip, ind, cy, cx = cptr, cind, cy2, cx2
+        if rank is None and len(sizes) > 1:
+            rank, band = band_order(ip, ind)
+        self.rank = rank if rank is not None else np.zeros(0, np.int64)
+        self.band = int(band)                  # the coarsest level's half-bandwidth in the order rank
         self.levels = len(sizes)
         self.pad4 = np.array(pads, dtype=np.bool_)      # level stored with exactly 4 entries per row
         self.emap0 = emaps.pop(0) if emaps else np.zeros(0, np.int64)
