@@ -263,10 +263,12 @@ def main(argv=None) -> int:
         with lock:
             truth_poses.append((msg.header.stamp_ns, m.transform_of(msg)))
 
-    def on_trace(key, payload):
-        t = msgpack.unpackb(payload, raw=False)
+    def on_trace(msg: m.EvolverTrace):
+        t = {"take": msg.take_ns, "decoded": msg.decoded_ns, "ready": msg.ready_ns,
+             "published": msg.published_ns, "generations": msg.generations, "reference": msg.reference,
+             "quality": msg.quality}
         with lock:
-            traces[int(t["seq"])] = t
+            traces[int(msg.header.seq)] = t
 
     def on_status(key, payload):
         try:
@@ -287,7 +289,7 @@ def main(argv=None) -> int:
         node.subscribe("stereo/frame", None, on_frame, raw=True)
         node.subscribe("slam/pose", m.PoseEstimate, on_pose)
         node.subscribe("truth/pose", m.PoseEstimate, on_truth)
-        node.subscribe("trace/evolver", None, on_trace, raw=True)
+        node.subscribe("trace/evolver", m.EvolverTrace, on_trace)
         node.subscribe("status/*", None, on_status, raw=True)
         t_start = time.monotonic()
         while sup.poll() is None:

@@ -510,6 +510,23 @@ class Heartbeat(Message):
     header: Envelope = _header_field()
 
 
+@schema("EvolverTrace")
+class EvolverTrace(Message):
+    """Where one frame's time went in the evolver (``--trace``; bench/pipeline.py's latency breakdown):
+    the evolver process's monotonic clock (ns) when the frame was taken from its channel, decoded, ready
+    (images set, flies re-scored) and its population published; the settle's generations; the mean
+    fitness the settle waited to recover (``reference``, None for the first frame) and reached
+    (``quality``).  ``header.seq`` is the frame's seq."""
+    take_ns: int = 0
+    decoded_ns: int = 0
+    ready_ns: int = 0
+    published_ns: int = 0
+    generations: int = 0
+    reference: Optional[float] = None
+    quality: float = 0.0
+    header: Envelope = _header_field()
+
+
 @schema("DepthImage")
 class DepthImage(Message):
     """Ground-truth depth (metres, Z in the left optical frame; inf = nothing) from a simulator."""

@@ -13,7 +13,8 @@ evolving and republishes at ``--publish-hz`` (anytime: the population is always 
 a small machine — above all the localiser registering the population just published — keep theirs.
 
 ``--trace`` also publishes, per frame, when it was taken, decoded, re-scored and published
-(``trace/evolver``, msgpack, monotonic ns) so that bench/pipeline.py can break the latency down.
+(``trace/evolver``, an EvolverTrace message, monotonic ns) so that bench/pipeline.py can break the latency
+down.
 """
 from __future__ import annotations
 
@@ -21,8 +22,6 @@ import logging
 import sys
 import threading
 import time
-
-import msgpack
 
 from common import messages as m
 from common.camera import CalibrationError
@@ -178,10 +177,11 @@ def body(node, args) -> int:
             node.rates["frames_skipped"] = float(frames.skipped)
             node.rates["settle_generations"] = float(generations)
             if trace is not None:
-                trace.put_raw(msgpack.packb({"seq": int(frame.header.seq), "take": t_take, "decoded": t_decoded,
-                                             "ready": t_ready, "published": t_published,
-                                             "generations": generations, "reference": reference,
-                                             "quality": population_quality(evolver.fitness)}))
+                trace.publish(m.EvolverTrace(
+                    take_ns=t_take, decoded_ns=t_decoded, ready_ns=t_ready, published_ns=t_published,
+                    generations=int(generations), reference=reference,
+                    quality=population_quality(evolver.fitness),
+                    header=m.header(frame.header.seq, frame.header.stamp_ns, frame.header.frame_id)))
             continue
         # Between frames: evolve with a duty cycle, republish at the configured rate.
         t0 = time.monotonic()

@@ -38,6 +38,9 @@ def samples():
     yield m.Heartbeat(service="evolver", pid=12, progress=1000, rates={"generations_per_s": 50.5},
                       counters={"rejected": 2})
     yield m.DepthImage(depth=rng.random((48, 64)).astype(np.float32))
+    yield m.EvolverTrace(take_ns=10, decoded_ns=20, ready_ns=30, published_ns=45, generations=7,
+                         reference=None, quality=0.25, header=m.header(3, 123))
+    yield m.EvolverTrace(generations=2, reference=0.5, quality=0.5)
 
 
 def _equal(a, b):

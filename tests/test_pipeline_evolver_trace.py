@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import time
 
-import msgpack
 import numpy as np
 
 from common import messages as m
@@ -21,8 +20,7 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
             heartbeats, populations, traces = [], [], []
             node.subscribe("status/evolver", m.Heartbeat, heartbeats.append)
             node.subscribe("flies/population", m.FlyPopulation, populations.append)
-            node.subscribe("trace/evolver", None, lambda key, payload: traces.append(msgpack.unpackb(payload)),
-                           raw=True)
+            node.subscribe("trace/evolver", m.EvolverTrace, traces.append)
             assert wait_until(lambda: heartbeats, 30), "evolver did not come up"
             calib = StereoCalibration.ideal(96, 72)
             node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
@@ -31,16 +29,16 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
             img = rng.integers(0, 255, (72, 96, 3), dtype=np.uint8)
             for seq in range(1, 6):
                 frames.publish(make_frame(img, np.roll(img, -4, axis=1), seq, time.time_ns()))
-                assert wait_until(lambda: any(t["seq"] == seq for t in traces), 30), f"no trace for frame {seq}"
-            by_seq = {t["seq"]: t for t in traces}
+                assert wait_until(lambda: any(t.header.seq == seq for t in traces), 30), f"no trace for frame {seq}"
+            by_seq = {t.header.seq: t for t in traces}
             for seq, t in by_seq.items():
-                assert t["take"] <= t["decoded"] <= t["ready"] <= t["published"], t
-                assert t["generations"] >= 1
+                assert t.take_ns <= t.decoded_ns <= t.ready_ns <= t.published_ns, t
+                assert t.generations >= 1
                 # A generation of 400 flies takes well under a millisecond: the 30 ms budget bounds the
                 # settle, give or take the last generation and a loaded machine's scheduling.
-                assert (t["published"] - t["ready"]) * 1e-9 < 0.5, t
+                assert (t.published_ns - t.ready_ns) * 1e-9 < 0.5, t
                 assert any(p.source_seq == seq for p in populations), f"no population published for frame {seq}"
-            assert by_seq[1]["reference"] is None            # first frame: nothing to recover to
-            assert all(by_seq[s]["reference"] is not None for s in range(2, 6))
+            assert by_seq[1].reference is None               # first frame: nothing to recover to
+            assert all(by_seq[s].reference is not None for s in range(2, 6))
     finally:
         assert stop(proc) == 0, (tmp_path / "evolver.log").read_text()[-3000:]
