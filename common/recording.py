@@ -16,7 +16,9 @@ the problem (:attr:`RecordingReader.error`) instead of raising half-way.
 from __future__ import annotations
 
 import base64
+import collections
 import json
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -31,6 +33,56 @@ MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "flyslam-msgpack"  # our schemas are Python dataclasses; the name identifies them
 CALIBRATION_METADATA = "flyslam.calibration"
 CONFIG_METADATA = "flyslam.config"
+
+
+class RecorderBacklog:
+    """Messages received on the bus's threads, waiting for the recorder's writer loop; bounded in bytes.
+
+    A recorder must keep up, but a niced one on a loaded machine can fall behind for minutes.  Past
+    ``max_bytes`` of queued payloads the OLDEST are dropped and counted per key (as rosbag's
+    ``--buffsize``), so the recording loses a stretch, says so, and the machine's memory stays bounded;
+    an unbounded queue would grow until the machine swapped and starved every other service too.
+    ``max_bytes`` 0: unbounded."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self._items: collections.deque = collections.deque()
+        self._bytes = 0
+        self._ready = threading.Condition()
+        self._dropped: dict[str, int] = {}
+
+    def put(self, key: str, payload: bytes, recv_ns: int) -> None:
+        with self._ready:
+            self._items.append((key, payload, recv_ns))
+            self._bytes += len(payload)
+            while self.max_bytes and self._bytes > self.max_bytes and len(self._items) > 1:
+                old_key, old_payload, _ = self._items.popleft()
+                self._bytes -= len(old_payload)
+                self._dropped[old_key] = self._dropped.get(old_key, 0) + 1
+            self._ready.notify()
+
+    def get(self, timeout: float) -> tuple[str, bytes, int] | None:
+        """The oldest message, or None if none came within ``timeout`` seconds."""
+        with self._ready:
+            if not self._items and not self._ready.wait_for(lambda: self._items, timeout):
+                return None
+            item = self._items.popleft()
+            self._bytes -= len(item[1])
+            return item
+
+    @property
+    def queued_bytes(self) -> int:
+        with self._ready:
+            return self._bytes
+
+    def __len__(self) -> int:
+        with self._ready:
+            return len(self._items)
+
+    def dropped_by_key(self) -> dict[str, int]:
+        """Messages dropped so far, per key (a copy: the bus's threads keep adding)."""
+        with self._ready:
+            return dict(self._dropped)
 
 
 class RecordingError(Exception):

@@ -2,22 +2,26 @@
 
 Subscribes once (raw, unvalidated: a recorder keeps what was on the bus) to ``<robot>/**`` and keeps the
 keys matching a ``--keys`` pattern — one subscription, because Zenoh may run the callbacks of separate
-subscriptions concurrently and the recording must keep the order of arrival — queues payloads from Zenoh's threads and writes them from the main loop, flushing
-the chunk in progress every ``--flush-s`` seconds so that a SIGKILL loses at most that much. The first
-calibration seen is also stored as metadata, with the run's configuration (``--run-config``).
+subscriptions concurrently and the recording must keep the order of arrival — queues payloads from
+Zenoh's threads and writes them from the main loop, flushing the chunk in progress every ``--flush-s``
+seconds so that a SIGKILL loses at most that much. The first calibration seen is also stored as
+metadata, with the run's configuration (``--run-config``).
+
+The queue holds at most ``--max-backlog-mb`` of payloads: a recorder that falls that far behind (niced
+on a loaded machine) drops the oldest queued messages, counts them per key in its heartbeat
+(``dropped``) and logs a warning, instead of growing without bound.
 """
 from __future__ import annotations
 
 import json
 import logging
-import queue
 import sys
 import time
 from pathlib import Path
 
 import zenoh
 
-from common.recording import RecordingWriter
+from common.recording import RecorderBacklog, RecordingWriter
 from services.base import run_service, service_parser
 
 log = logging.getLogger("flyslam.recorder")
@@ -31,11 +35,14 @@ def build_parser():
     p.add_argument("--flush-s", type=float, default=1.0, help="close the chunk in progress this often")
     p.add_argument("--run-config", help="JSON file describing the run, stored as metadata")
     p.add_argument("--chunk-mb", type=float, default=4.0, help="chunk size before compression")
+    p.add_argument("--max-backlog-mb", type=float, default=512.0,
+                   help="payloads queued for writing beyond this are dropped, oldest first, and counted "
+                        "(0 = unbounded)")
     return p
 
 
 def body(node, args) -> int:
-    inbox: queue.SimpleQueue = queue.SimpleQueue()  # unbounded, drained by the loop below
+    backlog = RecorderBacklog(int(args.max_backlog_mb * 1e6))
     writer = RecordingWriter(args.out, chunk_size=int(args.chunk_mb * 1e6))
     if args.run_config:
         writer.add_config(json.loads(Path(args.run_config).read_text()))
@@ -43,21 +50,22 @@ def body(node, args) -> int:
 
     def on_payload(key: str, payload: bytes) -> None:
         if any(p.intersects(zenoh.KeyExpr(key)) for p in patterns):
-            inbox.put((key, payload, time.time_ns()))
+            backlog.put(key, payload, time.time_ns())
 
     node.subscribe("**", None, on_payload, raw=True)
     calibration_key = node.key("stereo/calibration")
     have_calibration = False
     last_flush = time.monotonic()
+    reported_drops = 0
     log.info("recording %s to %s", " ".join(node.key(k) for k in args.keys), args.out)
     try:
         while True:
-            try:
-                key, payload, recv_ns = inbox.get(timeout=0.05)
-            except queue.Empty:
+            item = backlog.get(timeout=0.05)
+            if item is None:
                 if node.stopping:
                     break
             else:
+                key, payload, recv_ns = item
                 writer.write(key, payload, recv_ns)
                 node.progress += 1
                 if not have_calibration and key == calibration_key:
@@ -66,10 +74,20 @@ def body(node, args) -> int:
             if time.monotonic() - last_flush >= args.flush_s:
                 writer.flush()
                 last_flush = time.monotonic()
-            node.rates["backlog"] = float(inbox.qsize())
+                by_key = backlog.dropped_by_key()
+                dropped = sum(by_key.values())
+                if dropped > reported_drops:
+                    node.counters.add("dropped", dropped - reported_drops)
+                    log.warning("writing fell %.0f MB behind: dropped %d oldest queued messages so far (%s)",
+                                args.max_backlog_mb, dropped,
+                                ", ".join(f"{k}: {n}" for k, n in sorted(by_key.items())))
+                    reported_drops = dropped
+            node.rates["backlog"] = float(len(backlog))
     finally:
         writer.close()
-        log.info("wrote %d messages to %s", writer.count, args.out)
+        dropped = sum(backlog.dropped_by_key().values())
+        log.info("wrote %d messages to %s%s", writer.count, args.out,
+                 f"; dropped {dropped} when writing fell behind" if dropped else "")
     return 0
 
 

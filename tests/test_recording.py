@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from common.recording import RecordingError, RecordingReader, RecordingWriter
+from common.recording import RecorderBacklog, RecordingError, RecordingReader, RecordingWriter
 from deploy.commands import info
 from tests.helpers import start_module, stop, wait_until, write_source_recording
 
@@ -101,3 +101,21 @@ def test_writer_survives_unknown_payloads(tmp_path):
         w.write("rig/x", b"not msgpack", 5)
     (msg,) = list(RecordingReader(path).messages())
     assert (msg.schema, msg.payload, msg.publish_time_ns) == ("unknown", b"not msgpack", 5)
+
+
+def test_a_recorder_that_falls_behind_drops_its_oldest_messages_and_counts_them():
+    """Bounded in bytes: the newest messages are kept in order, the oldest dropped and counted per key;
+    unbounded with 0."""
+    backlog = RecorderBacklog(max_bytes=1000)
+    for i in range(30):
+        backlog.put("rig/stereo/frame" if i % 3 == 0 else "rig/odom/wheels", bytes(100), i)
+    kept = []
+    while (item := backlog.get(timeout=0.01)) is not None:
+        kept.append(item[2])
+    assert kept == list(range(20, 30))                 # the 10 newest (1000 bytes), in arrival order
+    assert backlog.dropped_by_key() == {"rig/stereo/frame": 7, "rig/odom/wheels": 13}
+    assert backlog.get(timeout=0.01) is None and len(backlog) == 0 and backlog.queued_bytes == 0
+    unbounded = RecorderBacklog(max_bytes=0)
+    for i in range(50):
+        unbounded.put("k", bytes(1000), i)
+    assert len(unbounded) == 50 and unbounded.dropped_by_key() == {}
