@@ -268,3 +268,44 @@ def test_multigrid_matches_a_direct_solve_across_one_cell_walls():
     assert cycles < 40
     assert ref[act].min() < -40                                # a wide range of phi across the walls
     assert np.abs(psi[act] - ref[act]).max() < 1e-6
+
+
+def test_a_narrow_serpentine_solved_cold_gives_a_finite_field_that_matches_a_direct_solve():
+    """Walls 0.7 m apart with 0.6 m doorways: the hierarchy's banded coarsest level is a long chain whose
+    exact solve asks for factors far below float64's range on a cold start (they once came back as NaN
+    or a division by zero).  The default planner converges, and to the right field."""
+    pl = HarmonicPlanner(PlannerConfig(resolution=0.05, size_m=(10.0, 10.0), origin=(0.0, 0.0)))
+    walls = []
+    for k, y in enumerate(np.arange(0.7, 9.8, 0.7)):
+        x0, x1 = (0.0, 9.4) if k % 2 == 0 else (0.6, 10.0)
+        walls.append(wall_flies(x0, x1, y))
+    walls = np.vstack(walls)
+    pl.update_flies(walls, np.ones(len(walls)), 0)
+    pl.set_target(0.5, 0.5, 0.25)
+    rep = pl.solve()
+    assert rep.converged and rep.cycles < 60 and np.isfinite(rep.max_rel_change)
+    act = pl._state == hk.ACTIVE
+    psi = np.full(pl._state.shape, -np.inf)
+    psi[1:-1, 1:-1] = pl.log_phi
+    assert np.isfinite(psi[act]).all() and psi[act].min() < -300      # deep, and nowhere NaN
+    with np.errstate(divide="ignore"):
+        ref = direct_log_phi(pl._state)
+    near = act & (ref > -600)                          # where float64's phi does not underflow
+    assert np.abs(psi[near] - ref[near]).max() < 1e-3
+
+
+def test_a_field_that_turns_non_finite_is_discarded_commands_stop_and_the_next_solve_starts_afresh(monkeypatch):
+    from common.planning.multigrid import LogFieldSolver
+    pl = corridor_planner(6.0)
+    assert pl.solve().converged
+    monkeypatch.setattr(LogFieldSolver, "cycle", lambda self, *a, **k: float("nan"))
+    obj = wall_flies(3.0, 3.2, 0.75)                   # a small object: a change, so the solver runs
+    pl.update_flies(obj, np.ones(len(obj)), 1)
+    rep = pl.solve()
+    assert not rep.converged and rep.status.startswith("solver failed")
+    cmd = pl.command((4.0, 0.75, 0.0))
+    assert cmd.stop and cmd.v == 0.0 and cmd.omega == 0.0 and cmd.reason == "not solved"
+    monkeypatch.undo()
+    rep = pl.solve()
+    assert rep.converged and pl.status == "ok" and np.isfinite(pl.log_phi[pl.passable]).all()
+    assert not pl.command((4.0, 0.75, 0.0)).stop

@@ -49,7 +49,8 @@ class PlannerConfig:
     mg_smoothing_sweeps: int = 1         # Gauss-Seidel sweeps before and after each coarse correction
     mg_krylov_levels: int = 1            # coarse levels 1..k use K-cycles (two cycles + residual minimisation);
                                          # deeper levels V-cycles (1: fastest since the banded coarsest solve)
-    mg_coarsest: int = 48                # unknowns at which the hierarchy stops (solved directly)
+    mg_coarsest: int = 48                # the hierarchy stops at this many unknowns at the latest (solved
+                                         # directly; usually earlier, at a narrow-band level: multigrid_hierarchy)
     max_cycles: int = 200
     # Controller.
     v_max: float = 0.5

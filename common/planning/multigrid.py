@@ -38,7 +38,9 @@ plain multiplicative corrections.
 Also measured and rejected (issue #7; the cycle count is what the structure above gives, so the work
 went into the cost per cycle): K-cycles on level 1 only — a quarter faster at 200 x 200, but at
 400 x 400 warm updates need 11-12 cycles and, with K-cycles on levels 1-2 or 1-3, some do not converge in
-200 (deeper levels then over-correct); a K-cycle
+200 (deeper levels then over-correct) — with the coarsest level at <= 48 unknowns; since the third attempt
+(below) the hierarchy stops at an exactly solved banded level and K-cycles on level 1 only are the
+default; a K-cycle
 that skips its second repetition when the first reduced the residual enough (Notay's test) — fewer
 cycles on some maps, more on others; 3 x 3 or 4 x 4 aggregates below level 1 — 1.5-5x more cycles; two
 smoothing sweeps on level 0 — one cycle fewer, no faster; a wider LINEAR_BAND — slower cold starts.
@@ -113,6 +115,14 @@ from .multigrid_hierarchy import Hierarchy, ell_emap, fine_system, pad_rows4  # 
 # tolerance's slack), so e^2.
 OVER_CLIP = 2.0
 LINEAR_BAND = 0.5
+# The coarsest level's factors are clipped to exp(+-COARSE_FACTOR_LOG_MAX).  Solved exactly, a long
+# chain-like level (a narrow serpentine's, on a cold start) asks for factors far below e^-700, which
+# float64 cannot hold; and the levels above square their iterate (the Galerkin weights phi^2), so even
+# e^-400 underflowed there and gave a NaN or a division by zero (issue #7 review: 0.6-0.7 m corridors on
+# a 10 m map).  At e^+-100 two K-cycle repetitions and level 0's over-correction stay within e^+-250, whose
+# squares float64 holds; the field then gets there over a few more cycles (2-5 on those maps; none on
+# the bench's warm updates).
+COARSE_FACTOR_LOG_MAX = 100.0
 
 
 @njit(cache=True)
@@ -146,7 +156,7 @@ def relative_residual(x, dg, ip, ind, vals, f, out):
             acc += vals[e] * x[ind[e]]
         out[i] = acc
         r = abs(acc) / (dg[i] * x[i])
-        if r > worst:
+        if not r <= worst:              # NaN propagates (see _fine_prolong_gs_back)
             worst = r
     return worst
 
@@ -346,7 +356,9 @@ def _fine_prolong_gs_back(x, nb, w4, f, Q, prev, measure):
             + w4[i, 0] * x[nb[i, 0]]
         x[i] = v
         if measure:
-            worst = max(worst, abs(v - prev[i]) / v)
+            r = abs(v - prev[i]) / v
+            if not r <= worst:          # not max(): a NaN must propagate, not read as "no change"
+                worst = r
     return worst
 
 
@@ -358,7 +370,9 @@ def _fine_gs_back_change(x, nb, w4, f, prev):
         v = (f[i] + w4[i, 1] * x[nb[i, 1]] + w4[i, 2] * x[nb[i, 2]] + w4[i, 3] * x[nb[i, 3]]) \
             + w4[i, 0] * x[nb[i, 0]]
         x[i] = v
-        worst = max(worst, abs(v - prev[i]) / v)
+        r = abs(v - prev[i]) / v
+        if not r <= worst:              # NaN propagates (see _fine_prolong_gs_back)
+            worst = r
     return worst
 
 
@@ -369,7 +383,9 @@ def fine_residual(x, nb, w4, f):
     for i in range(x.size):
         acc = (f[i] + w4[i, 0] * x[nb[i, 0]] + w4[i, 1] * x[nb[i, 1]] + w4[i, 2] * x[nb[i, 2]]
                + w4[i, 3] * x[nb[i, 3]] - x[i])
-        worst = max(worst, abs(acc) / x[i])
+        r = abs(acc) / x[i]
+        if not r <= worst:              # NaN propagates (see _fine_prolong_gs_back)
+            worst = r
     return worst
 
 
@@ -456,7 +472,8 @@ def _band_solve(dg, ip, ind, vals, f, rank, b, A, rhs, out):
     """The coarsest level solved by banded Gaussian elimination without pivoting (an M-matrix needs
     none) in the bandwidth-reducing order ``rank`` (node i is row rank[i]; |rank i - rank j| <= b for
     every coupling): O(n b^2) instead of the dense O(n^3).  ``A`` (n, 2b+1) and ``rhs`` (n,) are
-    scratch; entry (r, c) of the permuted matrix is A[r, c - r + b]."""
+    scratch; entry (r, c) of the permuted matrix is A[r, c - r + b].  The factors written to ``out`` are
+    clipped to exp(+-COARSE_FACTOR_LOG_MAX) (see there)."""
     n = dg.size
     A[:, :] = 0.0
     for i in range(n):
@@ -482,14 +499,16 @@ def _band_solve(dg, ip, ind, vals, f, rank, b, A, rhs, out):
         for j in range(1, min(b, n - 1 - k) + 1):
             acc -= A[k, b + j] * rhs[k + j]
         rhs[k] = acc / A[k, b]
+    lo = np.exp(-COARSE_FACTOR_LOG_MAX)
+    hi = 1.0 / lo
     for i in range(n):
-        out[i] = max(rhs[rank[i]], 1e-300)
+        out[i] = min(max(rhs[rank[i]], lo), hi)
 
 
 @njit(cache=True)
 def _dense_solve_ell(nb, w4, f):
-    """``_dense_solve`` of level 0 (dg = 1) from its ELL table: a map small enough to have no coarser
-    level."""
+    """Gaussian elimination (``_eliminate``) of level 0 (dg = 1) from its ELL table: a map small enough to
+    have no coarser level."""
     n = f.size
     A = np.zeros((n, n))
     for i in range(n):
@@ -705,12 +724,6 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
             for _ in range(nu0 - 2):
                 _fine_gs(x0, nb, w4, F[:n0], False)
             return _fine_gs_back_change(x0, nb, w4, F[:n0], prev)
-            if nu0 == 1:
-                return _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev, True)
-            _fine_prolong_gs_back(x0, nb, w4, F[:n0], q, agg0, prev, False)
-            for _ in range(nu0 - 2):
-                _fine_gs(x0, nb, w4, F[:n0], False)
-            return _fine_gs_back_change(x0, nb, w4, F[:n0], prev)
         else:
             _ascend(l, NN, NNZ, PO, EO, NO, IP, IND, AGG, S, DG, VALS, F, X, XS, R, W, D, D1, V, V1,
                     state[l], 1.0 if krylov else over_correction, krylov, nu, PAD)
@@ -739,7 +752,9 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
 def _max_rel_change(x, prev):
     worst = 0.0
     for i in range(x.size):
-        worst = max(worst, abs(x[i] - prev[i]) / x[i])
+        r = abs(x[i] - prev[i]) / x[i]
+        if not r <= worst:              # NaN propagates (see _fine_prolong_gs_back)
+            worst = r
     return worst
 
 

@@ -200,7 +200,8 @@ class Hierarchy:
     only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle.  Level 0's
     own entries are not copied into the flat arrays (the cycle reads level 0 from the solver's ELL
     table; ``nnz[0]`` is 0 there): ``emap0`` maps its CSR entries to level 1's.  Copying them cost
-    ~1 ms per map change (3 MB of fresh memory)."""
+    ~1 ms per map change (3 MB of fresh memory).  The coarsest level is solved by banded elimination in
+    the order ``rank`` (its node -> row), whose half-bandwidth is ``band`` (see BAND_MAX)."""
 
     def __init__(self, indptr, indices, cy, cx, coarsest: int = 48, band_max: int = BAND_MAX):
         ips, inds, aggs, emaps, sizes = [indptr], [np.zeros(0, np.int64)], [], [], [cy.size]

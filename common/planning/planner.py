@@ -16,6 +16,7 @@ Grid convention: ``field[row, col]`` is the cell whose centre is
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -26,6 +27,8 @@ from .config import SensorView, Command, PlannerConfig, PlannerInputError, Solve
 from .controller import heading_command
 from .multigrid import LogFieldSolver
 from .occupancy import EvidenceGrid
+
+log = logging.getLogger("flyslam.planner")
 
 # Largest share of a solver's cells that map changes may cut out of it before the system and its
 # multigrid hierarchy are rebuilt for the current map (see HarmonicPlanner._block_only).
@@ -223,6 +226,8 @@ class HarmonicPlanner:
             cycles += 1
             if max_ms is not None and (time.perf_counter() - t0) * 1e3 >= max_ms:
                 break
+            if not math.isfinite(change):
+                return self._discard_solver(cycles, t0)
             if sv.drift() > 30.0:
                 sv.rebase()             # keep x near 1 so exp(s) x never leaves float64's range
         if cycles:
@@ -230,6 +235,21 @@ class HarmonicPlanner:
         self._converged = change < cfg.tolerance
         return SolveReport(cycles, self._converged, float(change), (time.perf_counter() - t0) * 1e3,
                            sv.live_size, "ok")
+
+    def _discard_solver(self, cycles: int, t0: float) -> SolveReport:
+        """A cycle produced a non-finite field (a numerical failure the solver should never have; the
+        multigrid's factors are clipped to keep float64 in range): keep nothing of it.  The planner says
+        so, commands stop ("not solved"), and the next ``solve`` starts the field from scratch."""
+        log.error("harmonic field became non-finite after %d cycles: discarded, restarting from scratch",
+                  cycles)
+        self._solver = None
+        self._has_solution = False
+        self._converged = False
+        self._solved_key = None
+        self._s[:] = 0.0
+        self._r[:] = 1.0
+        self._status = "solver failed: field restarted"
+        return SolveReport(cycles, False, float("nan"), (time.perf_counter() - t0) * 1e3, 0, self._status)
 
     # -- outputs -------------------------------------------------------------------------------------
     @property
