@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from common.planning import harmonic as hk
-from common.planning.multigrid import LogFieldSolver, _band_solve, fine_scales, interp_table, pad_rows4
-from common.planning.multigrid_hierarchy import BAND_MAX, band_order
+from common.planning.multigrid import LogFieldSolver, _band_solve, fine_scales, pad_rows4
+from common.planning.multigrid_hierarchy import BAND_MAX, band_order, interp_table
 from tests.test_planning_solver import direct_log_phi
 
 

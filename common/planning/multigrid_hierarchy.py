@@ -1,5 +1,6 @@
 """The multigrid's hierarchy: level 0's operator from the planner's grid, the aggregation of each level
-into the next, the coarse sparsity patterns, and their flattening for the numba cycle (multigrid.py).
+into the next, the coarse sparsity patterns, and their flattening for the numba cycle (multigrid.py);
+the banded coarsest level's ordering; level 0's bilinear prolongation table.
 
 Split from multigrid.py, which keeps the cycle and the solver: this part depends only on which cells are
 ACTIVE (and level 0's weights on the log scale), so it runs once per map change, not per cycle.
@@ -272,3 +273,41 @@ def ell_emap(nb, emap):
                     out[i, d] = emap[e]
                 e += 1
     return out
+
+
+@njit(cache=True)
+def _interp_rows(rows, nb, w4, cy, cx, agg, tab):
+    """Rows ``rows`` of ``interp_table`` (re)computed in place."""
+    for k in range(rows.size):
+        i = rows[k]
+        a = agg[i]
+        dh = 1 if cx[i] % 2 == 0 else 0         # a 2 x 2 block's west column looks west, its east one east
+        dv = 3 if cy[i] % 2 == 0 else 2         # its north row looks north, its south row south
+        jh = nb[i, dh] if w4[i, dh] > 0.0 else -1
+        jv = nb[i, dv] if w4[i, dv] > 0.0 else -1
+        jd = -1
+        if jh >= 0 and w4[jh, dv] > 0.0:
+            jd = nb[jh, dv]
+        elif jv >= 0 and w4[jv, dh] > 0.0:
+            jd = nb[jv, dh]
+        tab[i, 0] = agg[jh] if jh >= 0 else a
+        tab[i, 1] = agg[jv] if jv >= 0 else a
+        tab[i, 2] = agg[jd] if jd >= 0 else a
+
+
+def interp_table(nb, w4, cy, cx, agg):
+    """Level 0's smoothed (bilinear) prolongation: for every cell the aggregates of the three nearest
+    other 2 x 2 blocks — beside it, above or below it, and diagonally — reached through live couplings
+    only (a wall, the grid's edge or a cell cut out by ``block`` in the way: its own aggregate instead),
+    so a factor is never interpolated across a wall.  See multigrid._interp_factors."""
+    tab = np.empty((nb.shape[0], 3), dtype=np.int64)
+    _interp_rows(np.arange(nb.shape[0]), nb, w4, cy, cx, agg, tab)
+    return tab
+
+
+def update_interp_table(tab, dead, nb, w4, cy, cx, agg):
+    """``interp_table`` brought up to date after ``_block_cells`` cut the cells ``dead`` out: only rows
+    within two couplings of a removed cell can change (their neighbour, or the diagonal path through
+    it, is gone)."""
+    ring1 = nb[dead]
+    _interp_rows(np.unique(np.concatenate([ring1.ravel(), nb[ring1].ravel()])), nb, w4, cy, cx, agg, tab)
