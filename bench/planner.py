@@ -28,7 +28,10 @@ The 10 ms budget probe works on a copy of the planner, solver included, so it ta
 path (an appearing object is cut out of the existing solver); until this session it built a fresh
 solver, which at 400 x 400 alone took longer than the budget.
 
-Usage: python bench/planner.py [--json] [--sizes 100 200 400] [--warm-trials 5]
+Figures: bench/out/planner/field_<n>x<n>.png (``--out``): log phi, and where steepest descent reaches the
+target for this field and for the plain float64 relaxation.
+
+Usage: python bench/planner.py [--json] [--sizes 100 200 400] [--warm-trials 5] [--out DIR]
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ import argparse
 import copy
 import dataclasses
 import json
+import os
 import sys
 import time
 
@@ -97,7 +101,43 @@ def small_object(pl: HarmonicPlanner, rng: np.random.Generator) -> np.ndarray:
     return np.column_stack([xy, np.full(40, 0.5)])
 
 
-def bench_size(n: int, warm_trials: int) -> dict:
+def field_figure(path: str, state: np.ndarray, psi: np.ndarray, plain_u: np.ndarray, title: str) -> None:
+    """Three panels (OpenCV, 2 px per cell): log phi of the planner's field; where steepest descent of
+    it reaches the target (green) or gets stuck (red); the same for the textbook potential relaxed in
+    float64, whose gradient underflows to exactly zero far down the corridors."""
+    import cv2
+    active, target = state == hk.ACTIVE, state == hk.TARGET
+    blocked_bgr, target_bgr = np.array([40, 40, 40], np.uint8), np.array([255, 255, 255], np.uint8)
+    panels = []
+    lo = float(psi[active].min())
+    scaled = np.zeros(state.shape, np.uint8)
+    scaled[active] = np.clip(255 * (1 - psi[active] / lo), 0, 255).astype(np.uint8)
+    img = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)
+    img[~(active | target)] = blocked_bgr
+    img[target] = target_bgr
+    panels.append((img, f"log phi of the planner's field (0 .. {lo:.0f})"))
+    for field, name in ((psi, "log-space multigrid (float64)"), (-plain_u.astype(np.float64), "plain relaxation of u (float64)")):
+        ok = hk.reaches_target(hk.descent_successor(field, state))
+        img = np.empty(state.shape + (3,), np.uint8)
+        img[:] = blocked_bgr
+        img[active & ok] = (60, 170, 60)
+        img[active & ~ok] = (40, 40, 210)
+        img[target] = target_bgr
+        panels.append((img, f"{name}: descent reaches the target in {ok[active].mean():.1%}"))
+    row = []
+    for img, caption in panels:
+        big = cv2.resize(img[1:-1, 1:-1], None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)[::-1]   # y up
+        canvas = np.full((big.shape[0] + 40, big.shape[1] + 20, 3), 255, np.uint8)
+        canvas[30:30 + big.shape[0], 10:10 + big.shape[1]] = big
+        cv2.putText(canvas, caption, (10, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        row.append(canvas)
+    out = np.concatenate(row, 1)
+    header = np.full((30, out.shape[1], 3), 255, np.uint8)
+    cv2.putText(header, title, (10, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.imwrite(path, np.concatenate([header, out], 0))
+
+
+def bench_size(n: int, warm_trials: int, out_dir: str | None = None) -> dict:
     pl, _ = make_planner(n)
     t, c = time.perf_counter(), time.process_time()
     rep = pl.solve()
@@ -144,6 +184,13 @@ def bench_size(n: int, warm_trials: int) -> dict:
         u = hk.plain_potential(pl._state, dtype, tol=tol, max_sweeps=cap)
         plain[name] = hk.usable_fraction(-u.astype(np.float64), pl._state)
         log(f"{n}x{n}: plain {name} relaxation usable {plain[name]:.4f} ({(time.perf_counter() - t) * 1e3:.0f} ms)")
+        if out_dir and name == "float64":
+            os.makedirs(out_dir, exist_ok=True)
+            path = os.path.join(out_dir, f"field_{n}x{n}.png")
+            field_figure(path, pl._state, padded_psi(pl), u,
+                         f"{n} x {n} cells at {RES * 100:.0f} cm, target at the bottom left, after {warm_trials} "
+                         f"objects appeared")
+            log(f"{n}x{n}: figure {path}")
     return dict(full_ms=full_ms, full_cpu=full_cpu, warm_cpu=float(np.median(warm_cpu)),
                 warm_ms=float(np.median(warm_ms)), warm_ms_max=float(np.max(warm_ms)),
                 warm_sweeps=float(np.median(warm_sweeps)), warm_err=warm_err[0],
@@ -157,6 +204,8 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
     ap.add_argument("--sizes", type=int, nargs="+", default=[100, 200, 400])
     ap.add_argument("--warm-trials", type=int, default=5)
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "out", "planner"),
+                    help="folder for the figures (field_<n>x<n>.png: the field and where descent works)")
     args = ap.parse_args()
     # warm-up: compile every numba kernel on a tiny problem
     pl, _ = make_planner(80)
@@ -171,7 +220,7 @@ def main() -> None:
                            "plain_float64_usable_gradient_fraction", "plain_float32_usable_gradient_fraction",
                            "min_log_phi", "active_cells")}
     for n in args.sizes:
-        r = bench_size(n, args.warm_trials)
+        r = bench_size(n, args.warm_trials, args.out)
         key = f"{n}x{n}"
         out["full_solve_ms"][key] = round(r["full_ms"], 2)
         out["warm_update_ms"][key] = round(r["warm_ms"], 2)
