@@ -95,7 +95,10 @@ at 400), the largest log-phi error 1.1e-5.  Also measured and rejected: the bili
 the coarse levels too (no fewer cycles), in log space or without the diagonal block (same counts),
 over-correction 1.8-2.5 with it (same or more), OVER_CLIP e^0.5-e^3 (same), plain V-cycles everywhere
 (the over-correction compounds over the levels: diverges), K-cycles on levels 1-2 (one cycle more
-often, slower).
+often, slower), K-cycles everywhere until a cycle's change falls below 1 / 0.3 / 0.05 and on levels
+1-2 after that (no faster at 200 x 200; at 400 x 400 one warm update took 90-95 cycles), a banded level
+up to half-width 12 (BAND_MAX: slower at 400 x 400), and a branch-free level-0 Galerkin build (every
+entry added to a slot, the within-aggregate ones to a per-aggregate slot: 229 instead of 188 us).
 """
 from __future__ import annotations
 
