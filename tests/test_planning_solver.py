@@ -309,3 +309,9 @@ def test_a_field_that_turns_non_finite_is_discarded_commands_stop_and_the_next_s
     rep = pl.solve()
     assert rep.converged and pl.status == "ok" and np.isfinite(pl.log_phi[pl.passable]).all()
     assert not pl.command((4.0, 0.75, 0.0)).stop
+    # also when the non-finite cycle is the one that uses up a time budget
+    monkeypatch.setattr(LogFieldSolver, "cycle", lambda self, *a, **k: float("nan"))
+    obj = wall_flies(4.5, 4.7, 0.75)
+    pl.update_flies(obj, np.ones(len(obj)), 2)
+    assert pl.solve(max_ms=0.0).status.startswith("solver failed") and pl.command((4.0, 0.75, 0.0)).stop
+    monkeypatch.undo()

@@ -224,10 +224,10 @@ class HarmonicPlanner:
         while change >= cfg.tolerance and cycles < cap:
             change = sv.cycle(cfg.mg_over_correction, cfg.mg_smoothing_sweeps, cfg.mg_krylov_levels)
             cycles += 1
-            if max_ms is not None and (time.perf_counter() - t0) * 1e3 >= max_ms:
-                break
             if not math.isfinite(change):
                 return self._discard_solver(cycles, t0)
+            if max_ms is not None and (time.perf_counter() - t0) * 1e3 >= max_ms:
+                break
             if sv.drift() > 30.0:
                 sv.rebase()             # keep x near 1 so exp(s) x never leaves float64's range
         if cycles:
