@@ -204,7 +204,7 @@ def test_tracking_right_after_a_fix_gives_the_global_search_answer(monkeypatch):
     """Within tracking_gap_s of a fix the localiser registers from one seed at the prediction instead of a
     lattice of candidates (the lattice was most of a registration's cost at 30 frames/s); driving down
     the corridor with an odometry that drifts sideways, it ends where the global search ends."""
-    import common.slam as slam
+    import common.slam.localiser as slam
     lattices = []
     real = slam.register_planar
     monkeypatch.setattr(slam, "register_planar", lambda *a, **k: lattices.append(k["lattice"]) or real(*a, **k))
@@ -231,7 +231,7 @@ def test_tracking_pins_from_the_start_what_the_last_frame_found_on_the_window_ed
     pinned and registered again (two registrations per frame).  While tracking, the next frames pin it
     from the start (one registration each), and every tracking_recheck_pinned frames the full window is
     tried again, so a position the view can pin again is not held at the prediction for ever."""
-    import common.slam as slam
+    import common.slam.localiser as slam
     from common.registration.register import RegistrationResult
 
     windows = []
