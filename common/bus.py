@@ -16,6 +16,7 @@ it never raises out of a subscription.
 from __future__ import annotations
 
 import argparse
+import importlib.resources
 import json
 import logging
 import os
@@ -33,7 +34,7 @@ from common.messages import DecodeError, Heartbeat, header
 
 log = logging.getLogger("flyslam.bus")
 
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "deploy" / "zenoh" / "local.json5"
+DEFAULT_CONFIG = importlib.resources.files("common") / "zenoh_local.json5"   # package data: loopback only
 DEFAULT_ROBOT = "rig"
 
 
@@ -69,7 +70,7 @@ class BusOptions:
 
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("Zenoh bus")
-    g.add_argument("--config", help=f"Zenoh JSON5 configuration file (default: {DEFAULT_CONFIG.relative_to(DEFAULT_CONFIG.parents[2])})")
+    g.add_argument("--config", help="Zenoh JSON5 configuration file (default: the packaged common/zenoh_local.json5)")
     g.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
                    help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable; replaces the file's list)")
     g.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
@@ -88,10 +89,13 @@ def bus_options(ns: argparse.Namespace) -> BusOptions:
 
 
 def make_config(opts: BusOptions) -> zenoh.Config:
-    path = Path(opts.config) if opts.config else DEFAULT_CONFIG
-    if not path.is_file():
-        raise FileNotFoundError(f"Zenoh configuration {path} not found")
-    conf = zenoh.Config.from_file(str(path))
+    if opts.config:
+        path = Path(opts.config)
+        if not path.is_file():
+            raise FileNotFoundError(f"Zenoh configuration {path} not found")
+        conf = zenoh.Config.from_file(str(path))
+    else:
+        conf = zenoh.Config.from_json5(DEFAULT_CONFIG.read_text())
     if opts.hub:
         host = opts.hub.rsplit(":", 1)[0]
         conf.insert_json5("listen/endpoints", json.dumps([opts.hub, f"{host}:0"]))
