@@ -1,0 +1,341 @@
+"""The msgpack codec of flyslam messages: envelope, field vocabulary, schema registry, encode/decode.
+
+Every message on the bus (and in a recording) is a msgpack map: an *envelope* and the schema's fields.
+
+    {"schema": "flyslam.StereoFrame", "major": 1, "seq": 12, "stamp_ns": 1700000000000, "frame_id": "camera_left_optical",
+     ...fields...}
+
+numpy arrays travel as ``{"dtype": "uint8", "shape": [480, 640, 3], "data": <bytes>}``: no per-element
+encoding, so a 640×480 stereo pair costs one memcpy each way.
+
+Decoding *validates* and raises a subclass of :class:`DecodeError` for anything wrong — truncated bytes,
+wrong types, missing fields, unknown schema or major version, shape not matching the data, absurd sizes.
+Services catch ``DecodeError``, count it and carry on; nothing malformed ever escapes as another exception.
+
+A schema is a dataclass registered with :func:`schema`. Its fields are typed with the small vocabulary
+below (``int``, ``float``, ``str``, ``bool``, ``dict``, ``Array(...)``, a nested schema, ``list[...]`` of a
+nested schema, ``Optional``); the codec derives encoding and validation from those types.
+The schemas themselves are in :mod:`common.messages`, which re-exports this module's names.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import msgpack
+import numpy as np
+
+# ------------------------------------------------------------------------------------------ errors
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid flyslam message. Subclasses say why."""
+
+
+class MalformedPayload(DecodeError):
+    """Not msgpack, truncated, trailing bytes, or not a map."""
+
+
+class UnknownSchema(DecodeError):
+    """The envelope names a schema this build does not know (or not the one expected)."""
+
+
+class UnsupportedVersion(DecodeError):
+    """The schema's major version differs from this build's."""
+
+
+class MissingField(DecodeError):
+    """A required field (or envelope key) is absent."""
+
+
+class WrongType(DecodeError):
+    """A field holds a value of the wrong type."""
+
+
+class ShapeMismatch(DecodeError):
+    """An array's shape does not match its data length or the schema's constraint."""
+
+
+class TooLarge(DecodeError):
+    """A payload, array or list exceeds the configured sanity limits."""
+
+
+# Sanity limits: far above any legitimate message, far below what would hurt a 24 GiB machine.
+MAX_PAYLOAD_BYTES = 256 * 1024 * 1024
+MAX_ARRAY_BYTES = 128 * 1024 * 1024
+MAX_ARRAY_NDIM = 4
+MAX_LIST_LEN = 100_000
+
+ALLOWED_DTYPES = {"uint8", "uint16", "int16", "int32", "int64", "float32", "float64", "bool"}
+
+# ------------------------------------------------------------------------------- field vocabulary
+
+
+@dataclass(frozen=True)
+class Array:
+    """Type marker for a numpy array field. ``shape`` entries of ``None`` match any length.
+
+    ``ndim`` alternatives (e.g. images H×W or H×W×C) are given with ``shapes``.
+    """
+    dtype: str | tuple[str, ...]
+    shape: tuple | None = None
+    shapes: tuple[tuple, ...] | None = None
+
+    def dtypes(self) -> tuple[str, ...]:
+        return (self.dtype,) if isinstance(self.dtype, str) else self.dtype
+
+    def check(self, arr: np.ndarray, where: str) -> None:
+        if arr.dtype.name not in self.dtypes():
+            raise WrongType(f"{where}: dtype {arr.dtype.name}, expected {'/'.join(self.dtypes())}")
+        options = self.shapes if self.shapes is not None else ((self.shape,) if self.shape else None)
+        if options is None:
+            return
+        for shape in options:
+            if len(shape) == arr.ndim and all(s is None or s == n for s, n in zip(shape, arr.shape)):
+                return
+        raise ShapeMismatch(f"{where}: shape {arr.shape} does not match {options}")
+
+
+def array_field(dtype, shape=None, shapes=None, optional=False):
+    """Declare an array field: ``positions: np.ndarray = array_field("float32", (None, 3))``."""
+    meta = {"array": Array(dtype, shape, shapes)}
+    if optional:
+        return field(default=None, metadata=meta)
+    return field(default=None, metadata=meta | {"required": True})
+
+
+# ----------------------------------------------------------------------------- schema registry
+
+SCHEMAS: dict[str, type] = {}
+ENVELOPE_KEYS = ("schema", "major", "seq", "stamp_ns", "frame_id")
+
+
+def schema(name: str, major: int = 1):
+    """Class decorator: make a dataclass a wire schema named ``flyslam.<name>`` at major ``major``."""
+    def wrap(cls):
+        cls = dataclass(cls)
+        cls.SCHEMA = f"flyslam.{name}"
+        cls.MAJOR = major
+        SCHEMAS[cls.SCHEMA] = cls
+        return cls
+    return wrap
+
+
+@dataclass
+class Envelope:
+    """Per-message header carried by every top-level message."""
+    seq: int = 0
+    stamp_ns: int = 0
+    frame_id: str = ""
+
+
+class Message:
+    """Base of top-level schemas: carries the envelope as ``header``."""
+    SCHEMA: ClassVar[str]
+    MAJOR: ClassVar[int]
+
+
+# ------------------------------------------------------------------------------------ encoding
+
+
+def _encode_value(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        arr = np.ascontiguousarray(value)
+        return {"dtype": arr.dtype.name, "shape": list(arr.shape), "data": arr.tobytes()}
+    if dataclasses.is_dataclass(value):
+        return {f.name: _encode_value(getattr(value, f.name)) for f in dataclasses.fields(value)
+                if f.name != "header"}
+    if isinstance(value, (list, tuple)):
+        return [_encode_value(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _encode_value(v) for k, v in value.items()}
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def encode(msg) -> bytes:
+    """Serialise a top-level message (a registered schema instance with a ``header``) to bytes."""
+    cls = type(msg)
+    if getattr(cls, "SCHEMA", None) not in SCHEMAS:
+        raise TypeError(f"{cls.__name__} is not a registered message schema")
+    body = _encode_value(msg)
+    h = msg.header
+    body.update(schema=cls.SCHEMA, major=cls.MAJOR, seq=int(h.seq), stamp_ns=int(h.stamp_ns),
+                frame_id=str(h.frame_id))
+    return msgpack.packb(body, use_bin_type=True)
+
+
+# ------------------------------------------------------------------------------------ decoding
+
+
+def _decode_array(obj: Any, spec: Array, where: str) -> np.ndarray:
+    if not isinstance(obj, dict):
+        raise WrongType(f"{where}: expected an array map, got {type(obj).__name__}")
+    for key in ("dtype", "shape", "data"):
+        if key not in obj:
+            raise MissingField(f"{where}: array without '{key}'")
+    dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        raise WrongType(f"{where}: dtype {dtype!r} is not allowed")
+    if not isinstance(shape, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
+                                               for n in shape):
+        raise WrongType(f"{where}: shape must be a list of non-negative integers")
+    if len(shape) > MAX_ARRAY_NDIM:
+        raise TooLarge(f"{where}: {len(shape)} dimensions")
+    if not isinstance(data, (bytes, bytearray)):
+        raise WrongType(f"{where}: data must be bytes")
+    itemsize = np.dtype(dtype).itemsize
+    count = math.prod(shape)
+    if count * itemsize > MAX_ARRAY_BYTES:
+        raise TooLarge(f"{where}: {count * itemsize} bytes exceeds {MAX_ARRAY_BYTES}")
+    if count * itemsize != len(data):
+        raise ShapeMismatch(f"{where}: shape {shape} × {dtype} needs {count * itemsize} bytes, got {len(data)}")
+    arr = np.frombuffer(data, dtype=dtype).reshape(shape)
+    spec.check(arr, where)
+    return arr
+
+
+def _unwrap_optional(tp):
+    """(inner type, is_optional) for ``Optional[X]`` / ``X | None``."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) == 1 and len(typing.get_args(tp)) == 2:
+            return args[0], True
+    return tp, False
+
+
+def _decode_scalar(value: Any, tp, where: str):
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise WrongType(f"{where}: expected bool, got {type(value).__name__}")
+        return value
+    if tp is int:
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise WrongType(f"{where}: expected int, got {type(value).__name__}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise WrongType(f"{where}: expected float, got {type(value).__name__}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise WrongType(f"{where}: expected str, got {type(value).__name__}")
+        return value
+    if tp is dict or typing.get_origin(tp) is dict:
+        if not isinstance(value, dict):
+            raise WrongType(f"{where}: expected a map, got {type(value).__name__}")
+        return value
+    raise TypeError(f"unsupported field type {tp!r} at {where}")  # a bug in a schema, not in a payload
+
+
+def _decode_struct(obj: Any, cls, where: str):
+    if not isinstance(obj, dict):
+        raise WrongType(f"{where}: expected a map, got {type(obj).__name__}")
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name == "header":
+            continue
+        fwhere = f"{where}.{f.name}"
+        tp, optional = _unwrap_optional(hints[f.name])
+        required = f.metadata.get("required", False) or (
+            not optional and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
+        if f.name not in obj or obj[f.name] is None:
+            if required:
+                raise MissingField(f"{fwhere} is missing")
+            continue
+        value = obj[f.name]
+        if "array" in f.metadata:
+            kwargs[f.name] = _decode_array(value, f.metadata["array"], fwhere)
+        elif typing.get_origin(tp) is list:
+            (item_tp,) = typing.get_args(tp)
+            if not isinstance(value, list):
+                raise WrongType(f"{fwhere}: expected a list, got {type(value).__name__}")
+            if len(value) > MAX_LIST_LEN:
+                raise TooLarge(f"{fwhere}: {len(value)} items")
+            if dataclasses.is_dataclass(item_tp):
+                kwargs[f.name] = [_decode_struct(v, item_tp, f"{fwhere}[{i}]") for i, v in enumerate(value)]
+            else:
+                kwargs[f.name] = [_decode_scalar(v, item_tp, f"{fwhere}[{i}]") for i, v in enumerate(value)]
+        elif dataclasses.is_dataclass(tp):
+            kwargs[f.name] = _decode_struct(value, tp, fwhere)
+        else:
+            kwargs[f.name] = _decode_scalar(value, tp, fwhere)
+    return cls(**kwargs)
+
+
+def peek_schema(payload: bytes) -> tuple[str, int]:
+    """(schema, major) of a payload without validating the rest; raises DecodeError."""
+    obj = _unpack(payload)
+    return _envelope_schema(obj)
+
+
+def _unpack(payload: bytes) -> dict:
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise MalformedPayload(f"payload must be bytes, got {type(payload).__name__}")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise TooLarge(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=MAX_ARRAY_BYTES,
+                              max_str_len=1 << 20, max_array_len=MAX_LIST_LEN, max_map_len=1 << 16)
+    except msgpack.ExtraData as e:
+        raise MalformedPayload("trailing bytes after the message") from e
+    except (ValueError, msgpack.UnpackException, TypeError, RecursionError) as e:
+        raise MalformedPayload(f"not a valid msgpack message ({type(e).__name__}: {e})") from e
+    if not isinstance(obj, dict):
+        raise MalformedPayload(f"top level must be a map, got {type(obj).__name__}")
+    return obj
+
+
+def _envelope_schema(obj: dict) -> tuple[str, int]:
+    for key in ENVELOPE_KEYS:
+        if key not in obj:
+            raise MissingField(f"envelope is missing '{key}'")
+    name, major = obj["schema"], obj["major"]
+    if not isinstance(name, str):
+        raise WrongType("envelope.schema must be a string")
+    if not isinstance(major, int) or isinstance(major, bool):
+        raise WrongType("envelope.major must be an integer")
+    return name, major
+
+
+def decode(payload: bytes, expected: type | tuple[type, ...] | None = None):
+    """Parse and validate a payload. ``expected`` restricts which schema(s) are acceptable."""
+    obj = _unpack(payload)
+    name, major = _envelope_schema(obj)
+    cls = SCHEMAS.get(name)
+    if cls is None:
+        raise UnknownSchema(f"unknown schema {name!r}")
+    if expected is not None:
+        allowed = expected if isinstance(expected, tuple) else (expected,)
+        if cls not in allowed:
+            raise UnknownSchema(f"got {name}, expected {', '.join(c.SCHEMA for c in allowed)}")
+    if major != cls.MAJOR:
+        raise UnsupportedVersion(f"{name} major version {major}, this build reads {cls.MAJOR}")
+    seq, stamp, frame_id = obj["seq"], obj["stamp_ns"], obj["frame_id"]
+    if not isinstance(seq, int) or isinstance(seq, bool) or not isinstance(stamp, int) or isinstance(stamp, bool):
+        raise WrongType("envelope.seq and envelope.stamp_ns must be integers")
+    if not isinstance(frame_id, str):
+        raise WrongType("envelope.frame_id must be a string")
+    msg = _decode_struct(obj, cls, name)
+    msg.header = Envelope(seq=seq, stamp_ns=stamp, frame_id=frame_id)
+    return msg
+
+
+def header(seq: int = 0, stamp_ns: int = 0, frame_id: str = "") -> Envelope:
+    return Envelope(int(seq), int(stamp_ns), str(frame_id))
+
+
+def _header_field():
+    return field(default_factory=Envelope)
+
+
+def required(default=None):
+    """A nested-struct field that must be present on the wire."""
+    return field(default=default, metadata={"required": True})
