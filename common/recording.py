@@ -12,12 +12,22 @@ Layout of a flyslam recording:
 a recorder killed with SIGKILL leaves a file readable up to its last complete chunk. The reader streams
 records in file order and, on a truncated or corrupt file, yields what it could read and then reports
 the problem (:attr:`RecordingReader.error`) instead of raising half-way.
+
+A run's recording may be several *segments*: a restarted recorder never overwrites, it opens the next
+free name (``recording.mcap``, then ``recording.1.mcap``, ``recording.2.mcap``, …; :func:`open_segment`).
+:class:`RecordingReader` given the base path (or the run's folder) reads every segment, in number
+order, as one recording; given ``recording.1.mcap`` it reads that segment alone.
+
+MCAP stores times as uint64: a payload whose ``stamp_ns`` cannot be stored (negative, ≥ 2⁶⁴, not an
+integer) is still recorded, with ``publish_time`` = its receive time, and counted
+(:attr:`RecordingWriter.bad_stamps`).
 """
 from __future__ import annotations
 
 import base64
 import collections
 import json
+import re
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +43,8 @@ MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "flyslam-msgpack"  # our schemas are Python dataclasses; the name identifies them
 CALIBRATION_METADATA = "flyslam.calibration"
 CONFIG_METADATA = "flyslam.config"
+UINT64_LIMIT = 1 << 64
+_SEGMENT_NAME = re.compile(r"^(?P<stem>.+)\.(?P<n>[0-9]+)(?P<suffix>\.mcap)$")
 
 
 class RecorderBacklog:
@@ -101,19 +113,67 @@ class RecordedMessage:
 # ------------------------------------------------------------------------------------- writing
 
 
-class RecordingWriter:
-    """Append flyslam payloads to an MCAP file, one channel per key."""
+def segment_path(base: str | Path, n: int) -> Path:
+    """Name of segment ``n`` of the recording ``base``: 0 is ``base`` itself, then ``<stem>.<n><suffix>``."""
+    base = Path(base)
+    return base if n == 0 else base.with_name(f"{base.stem}.{n}{base.suffix}")
 
-    def __init__(self, path: str | Path, chunk_size: int = 1 << 20, compression: str = "zstd"):
+
+def _numbered_segments(base: Path) -> list[tuple[int, Path]]:
+    """(n, path) of the existing segments of ``base``, n = 0 for ``base`` itself, in number order."""
+    found = [(0, base)] if base.is_file() else []
+    if base.parent.is_dir():
+        prefix, suffix = f"{base.stem}.", base.suffix
+        for p in base.parent.iterdir():
+            middle = p.name[len(prefix):len(p.name) - len(suffix)]
+            if p.name.startswith(prefix) and p.name.endswith(suffix) and middle.isdigit() and p.is_file():
+                found.append((int(middle), p))
+    return sorted(found)
+
+
+def segments_of(base: str | Path) -> list[Path]:
+    """The existing segments of ``base`` (itself, then ``<stem>.<n><suffix>``), in number order."""
+    return [p for _, p in _numbered_segments(Path(base))]
+
+
+def find_recording(path: str | Path) -> list[Path]:
+    """The segment files a path names: a base file and its numbered segments, or the one recording
+    (base plus segments) in a folder. Raises RecordingError when there is none, or several in a folder."""
+    path = Path(path)
+    if path.is_dir():
+        bases = set()
+        for p in path.iterdir():
+            if p.suffix == ".mcap" and p.is_file():
+                m = _SEGMENT_NAME.match(p.name)
+                bases.add(f"{m['stem']}{m['suffix']}" if m else p.name)
+        if not bases:
+            raise RecordingError(f"{path}: folder holds no .mcap recording")
+        if len(bases) > 1:
+            raise RecordingError(f"{path}: folder holds several recordings ({', '.join(sorted(bases))}); name one")
+        path = path / bases.pop()
+    found = segments_of(path)
+    if not found:
+        raise RecordingError(f"{path}: no such recording")
+    return found
+
+
+class RecordingWriter:
+    """Append flyslam payloads to an MCAP file, one channel per key.
+
+    ``exclusive``: fail (FileExistsError) rather than overwrite an existing file."""
+
+    def __init__(self, path: str | Path, chunk_size: int = 1 << 20, compression: str = "zstd",
+                 exclusive: bool = False):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._file = open(self.path, "xb" if exclusive else "wb")  # noqa: SIM115 - closed in close()
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
         self._writer.start(profile="flyslam", library="flyslam")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.count = 0
+        self.bad_stamps = 0
         self._closed = False
 
     def _channel(self, key: str, schema: str) -> int:
@@ -137,6 +197,9 @@ class RecordingWriter:
                 obj_schema, stamp = "unknown", log_time_ns
             schema = schema or obj_schema
             publish_time_ns = stamp if publish_time_ns is None else publish_time_ns
+        if not _storable(publish_time_ns):
+            publish_time_ns = log_time_ns
+            self.bad_stamps += 1
         self._writer.add_message(self._channel(key, schema), log_time=int(log_time_ns), data=bytes(payload),
                                  publish_time=int(publish_time_ns), sequence=self.count)
         self.count += 1
@@ -169,11 +232,28 @@ class RecordingWriter:
         self.close()
 
 
-def _peek_stamp(payload: bytes) -> int:
+def open_segment(base: str | Path, **kwargs) -> RecordingWriter:
+    """A writer on the first free segment name of ``base``, after the last existing one; never an
+    existing file, even if another process creates one meanwhile."""
+    existing = _numbered_segments(Path(base))
+    n = existing[-1][0] + 1 if existing else 0
+    while True:
+        try:
+            return RecordingWriter(segment_path(base, n), exclusive=True, **kwargs)
+        except FileExistsError:
+            n += 1
+
+
+def _storable(stamp) -> bool:
+    """True when MCAP can store ``stamp`` (an unsigned 64-bit integer of nanoseconds)."""
+    return isinstance(stamp, int) and not isinstance(stamp, bool) and 0 <= stamp < UINT64_LIMIT
+
+
+def _peek_stamp(payload: bytes):
+    """The envelope's stamp_ns as sent (may be anything: :func:`_storable` decides), None if absent."""
     import msgpack
     obj = msgpack.unpackb(payload, raw=False)
-    stamp = obj.get("stamp_ns", 0) if isinstance(obj, dict) else 0
-    return stamp if isinstance(stamp, int) else 0
+    return obj.get("stamp_ns") if isinstance(obj, dict) else None
 
 
 # ------------------------------------------------------------------------------------- reading
@@ -203,6 +283,7 @@ class RecordingInfo:
     start_ns: int | None = None
     end_ns: int | None = None
     error: str | None = None
+    segments: list[Path] = field(default_factory=list)
 
     @property
     def message_count(self) -> int:
@@ -213,8 +294,11 @@ class RecordingInfo:
         return 0.0 if self.start_ns is None else (self.end_ns - self.start_ns) * 1e-9
 
     def format(self) -> str:
-        lines = [f"recording  {self.path}", f"size       {self.size_bytes / 1e6:.1f} MB",
-                 f"duration   {self.duration_s:.2f} s", f"messages   {self.message_count}"]
+        lines = [f"recording  {self.path}"]
+        if len(self.segments) > 1:
+            lines.append(f"segments   {len(self.segments)}: {', '.join(p.name for p in self.segments)}")
+        lines += [f"size       {self.size_bytes / 1e6:.1f} MB",
+                  f"duration   {self.duration_s:.2f} s", f"messages   {self.message_count}"]
         if self.error:
             lines.append(f"PROBLEM    {self.error} (everything before it is readable)")
         lines.append("channels:")
@@ -228,30 +312,50 @@ class RecordingInfo:
 
 
 class RecordingReader:
-    """Sequential reader that survives truncation and corruption.
+    """Sequential reader of a recording's segments that survives truncation and corruption.
 
-    Iterating :meth:`messages` yields every readable message in file order; if the file ends early or a
-    record is corrupt the iteration stops there and :attr:`error` says what happened.
+    ``path``: a base file (its numbered segments follow it, see :func:`find_recording`), a folder
+    holding one recording, or with ``segments=False`` exactly one file. Iterating :meth:`messages`
+    yields every readable message, segment after segment, in file order; where a segment ends early or
+    a record is corrupt, that segment stops there, the next one is read, and :attr:`error` says what
+    happened (``"<segment>: <problem>"`` per damaged segment when there are several).
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, segments: bool = True):
         self.path = Path(path)
-        if not self.path.is_file():
+        if segments:
+            self.segments = find_recording(self.path)
+        elif self.path.is_file():
+            self.segments = [self.path]
+        else:
             raise RecordingError(f"{self.path}: no such recording")
-        with open(self.path, "rb") as f:
-            magic = f.read(8)
-        if magic != b"\x89MCAP0\r\n":
-            raise RecordingError(f"{self.path}: not an MCAP file (bad magic bytes)")
+        if self.path.is_dir() or not self.path.is_file():
+            self.path = _base_of(self.segments[0])
+        for seg in self.segments:
+            with open(seg, "rb") as f:
+                magic = f.read(8)
+            if magic != b"\x89MCAP0\r\n":
+                raise RecordingError(f"{seg}: not an MCAP file (bad magic bytes)")
         self.error: str | None = None
+        self.errors: dict[Path, str] = {}
         self.metadata: dict[str, dict[str, str]] = {}
 
     def messages(self, keys: set[str] | None = None, start_ns: int | None = None,
                  end_ns: int | None = None) -> Iterator[RecordedMessage]:
         self.error = None
+        self.errors = {}
+        for seg in self.segments:
+            yield from self._segment_messages(seg, keys, start_ns, end_ns)
+        if len(self.segments) == 1:
+            self.error = self.errors.get(self.segments[0])
+        elif self.errors:
+            self.error = "; ".join(f"{p.name}: {e}" for p, e in self.errors.items())
+
+    def _segment_messages(self, path: Path, keys, start_ns, end_ns) -> Iterator[RecordedMessage]:
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {0: None}
         ended_cleanly = False
-        with open(self.path, "rb") as f:
+        with open(path, "rb") as f:
             reader = StreamReader(f, skip_magic=False, validate_crcs=True)
             records = reader.records
             while True:
@@ -260,14 +364,14 @@ class RecordingReader:
                 except StopIteration:
                     break
                 except Exception as e:  # noqa: BLE001 - any parse failure means "the file ends here"
-                    self.error = _describe(e)
+                    self.errors[path] = _describe(e)
                     return
                 if isinstance(rec, Schema):
                     schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
                     channels[rec.id] = rec
                 elif isinstance(rec, Metadata):
-                    self.metadata[rec.name] = dict(rec.metadata)
+                    self.metadata.setdefault(rec.name, dict(rec.metadata))
                 elif isinstance(rec, Message):
                     ch = channels.get(rec.channel_id)
                     if ch is None:
@@ -283,11 +387,11 @@ class RecordingReader:
                                           rec.publish_time, rec.data)
                 elif type(rec).__name__ == "Footer":
                     ended_cleanly = True
-        if not ended_cleanly and self.error is None:
-            self.error = "file ends without a footer (recorder stopped abruptly?)"
+        if not ended_cleanly:
+            self.errors[path] = "file ends without a footer (recorder stopped abruptly?)"
 
     def info(self) -> RecordingInfo:
-        info = RecordingInfo(self.path, self.path.stat().st_size)
+        info = RecordingInfo(self.path, sum(p.stat().st_size for p in self.segments), segments=list(self.segments))
         for m in self.messages():
             c = info.channels.get(m.key)
             if c is None:
@@ -308,6 +412,11 @@ class RecordingReader:
                 pass
         meta = self.metadata.get(CALIBRATION_METADATA)
         return base64.b64decode(meta["payload_b64"]) if meta else None
+
+
+def _base_of(segment: Path) -> Path:
+    m = _SEGMENT_NAME.match(segment.name)
+    return segment.with_name(f"{m['stem']}{m['suffix']}") if m else segment
 
 
 def _describe(e: Exception) -> str:

@@ -7,6 +7,11 @@ Zenoh's threads and writes them from the main loop, flushing the chunk in progre
 seconds so that a SIGKILL loses at most that much. The first calibration seen is also stored as
 metadata, with the run's configuration (``--run-config``).
 
+A recorder never overwrites: when ``--out`` exists (a restart), it writes the next numbered segment
+(``recording.1.mcap``, …), and readers take the segments together as one recording
+(common.recording). A payload whose stamp MCAP cannot store (a negative ``stamp_ns``…) is recorded
+with its receive time as publish time and counted (``bad_stamps`` in the heartbeat).
+
 The queue holds at most ``--max-backlog-mb`` of payloads: a recorder that falls that far behind (niced
 on a loaded machine) drops the oldest queued messages, counts them per key in its heartbeat
 (``dropped``) and logs a warning, instead of growing without bound.
@@ -15,13 +20,12 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 import time
 from pathlib import Path
 
-import zenoh
-
-from common.recording import RecorderBacklog, RecordingWriter
+from common.recording import RecorderBacklog, open_segment
 from services.base import run_service, service_parser
 
 log = logging.getLogger("flyslam.recorder")
@@ -29,7 +33,8 @@ log = logging.getLogger("flyslam.recorder")
 
 def build_parser():
     p = service_parser("record", __doc__.splitlines()[0])
-    p.add_argument("--out", "-o", required=True, help="MCAP file to write")
+    p.add_argument("--out", "-o", required=True,
+                   help="MCAP file to write; if it exists, the next free recording.<n>.mcap segment")
     p.add_argument("--keys", nargs="+", default=["**"],
                    help="stream patterns under the robot prefix, e.g. 'stereo/*' 'odom/wheels'")
     p.add_argument("--flush-s", type=float, default=1.0, help="close the chunk in progress this often")
@@ -41,23 +46,43 @@ def build_parser():
     return p
 
 
+def key_pattern(expr: str) -> re.Pattern:
+    """Regex matching the concrete keys a Zenoh key expression covers: ``*`` one chunk, ``**`` any
+    number of chunks (zero included), ``$*`` any characters within a chunk."""
+    parts = []
+    for chunk in expr.split("/"):
+        if chunk == "**":
+            parts.append(None)
+        else:
+            parts.append("[^/]+" if chunk == "*" else "[^/]*".join(re.escape(c) for c in chunk.split("$*")))
+    regex, need_slash = "", False
+    for part in parts:
+        if part is None:                # '**': any chunks, each with its separator
+            regex += "(?:/[^/]+)*" if need_slash else "(?:[^/]+(?:/|$))*"
+        else:
+            regex += ("/" if need_slash else "") + part
+            need_slash = True
+    return re.compile(regex.rstrip("/") if regex else "")
+
+
 def body(node, args) -> int:
     backlog = RecorderBacklog(int(args.max_backlog_mb * 1e6))
-    writer = RecordingWriter(args.out, chunk_size=int(args.chunk_mb * 1e6))
-    if args.run_config:
-        writer.add_config(json.loads(Path(args.run_config).read_text()))
-    patterns = [zenoh.KeyExpr(node.key(k)) for k in args.keys]
+    run_config = json.loads(Path(args.run_config).read_text()) if args.run_config else None
+    writer = open_segment(args.out, chunk_size=int(args.chunk_mb * 1e6))
+    if run_config is not None:
+        writer.add_config(run_config)
+    patterns = [key_pattern(node.key(k)) for k in args.keys]
 
     def on_payload(key: str, payload: bytes) -> None:
-        if any(p.intersects(zenoh.KeyExpr(key)) for p in patterns):
+        if any(p.fullmatch(key) for p in patterns):
             backlog.put(key, payload, time.time_ns())
 
     node.subscribe("**", None, on_payload, raw=True)
     calibration_key = node.key("stereo/calibration")
     have_calibration = False
     last_flush = time.monotonic()
-    reported_drops = 0
-    log.info("recording %s to %s", " ".join(node.key(k) for k in args.keys), args.out)
+    reported_drops = reported_bad_stamps = 0
+    log.info("recording %s to %s", " ".join(node.key(k) for k in args.keys), writer.path)
     try:
         while True:
             item = backlog.get(timeout=0.05)
@@ -74,6 +99,11 @@ def body(node, args) -> int:
             if time.monotonic() - last_flush >= args.flush_s:
                 writer.flush()
                 last_flush = time.monotonic()
+                if writer.bad_stamps > reported_bad_stamps:
+                    node.counters.add("bad_stamps", writer.bad_stamps - reported_bad_stamps)
+                    log.warning("%d messages so far had a stamp_ns MCAP cannot store (negative or too large); "
+                                "recorded with their receive time", writer.bad_stamps)
+                    reported_bad_stamps = writer.bad_stamps
                 by_key = backlog.dropped_by_key()
                 dropped = sum(by_key.values())
                 if dropped > reported_drops:
@@ -86,7 +116,7 @@ def body(node, args) -> int:
     finally:
         writer.close()
         dropped = sum(backlog.dropped_by_key().values())
-        log.info("wrote %d messages to %s%s", writer.count, args.out,
+        log.info("wrote %d messages to %s%s", writer.count, writer.path,
                  f"; dropped {dropped} when writing fell behind" if dropped else "")
     return 0
 

@@ -6,8 +6,9 @@ possible), from ``--start`` to ``--end`` seconds into the recording, optionally 
 the source streams are replayed (what a camera, the robot and a simulator publish), so the pipeline
 downstream can run live on them; ``--keys`` chooses others.
 
-A truncated or corrupt recording is replayed up to the damage, then the problem is logged with the
-file name and the process exits with status 3.
+A recording of several segments (a restarted recorder's ``recording.1.mcap``, …) replays as one: give
+the base file or the run's folder. A truncated or corrupt segment is replayed up to the damage (then
+the next segment), the problem is logged with the file name and the process exits with status 3.
 """
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ LATCHED_SCHEMAS = {"flyslam.StereoCalibration", "flyslam.Target"}
 
 def build_parser():
     p = service_parser("replay", __doc__.splitlines()[0])
-    p.add_argument("recording", help="MCAP file written by `flyslam record` or `flyslam import`")
+    p.add_argument("recording", help="MCAP file written by `flyslam record` or `flyslam import` (its numbered "
+                                     "segments follow it), or a run folder holding one recording")
     p.add_argument("--rate", type=float, default=1.0, help="speed factor; 0 publishes as fast as possible")
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--start", type=float, default=0.0, help="seconds into the recording to start at")
@@ -86,9 +88,10 @@ def body(node, args) -> int:
             published += 1
             node.progress += 1
         passes += 1
-        if reader.error:
-            log.warning("%s: %s; replayed the %d messages before it", args.recording, reader.error, published)
-            if reader.error.startswith(("truncated", "corrupt")):
+        if reader.errors:
+            for path, problem in reader.errors.items():
+                log.warning("%s: %s; replayed what it holds before that", path, problem)
+            if any(e.startswith(("truncated", "corrupt")) for e in reader.errors.values()):
                 return 3
         log.info("pass %d: published %d messages", passes, published)
         if not args.loop or published == 0:

@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from common.recording import RecorderBacklog, RecordingError, RecordingReader, RecordingWriter
+from common.recording import RecorderBacklog, RecordingError, RecordingReader, RecordingWriter, open_segment
 from deploy.commands import info
 from tests.helpers import start_module, stop, wait_until, write_source_recording
 
@@ -119,3 +119,98 @@ def test_a_recorder_that_falls_behind_drops_its_oldest_messages_and_counts_them(
     for i in range(50):
         unbounded.put("k", bytes(1000), i)
     assert len(unbounded) == 50 and unbounded.dropped_by_key() == {}
+
+
+def test_segments_of_a_restarted_recorder_read_as_one_recording(tmp_path, capsys):
+    """open_segment never overwrites; the base path, the folder and info see every segment in number order."""
+    base = tmp_path / "run" / "recording.mcap"
+    names = []
+    for seg in range(12):   # past 9, so number order and name order differ
+        with open_segment(base) as w:
+            w.write("rig/odom/wheels", b"not msgpack", 1000 + seg)
+            names.append(w.path.name)
+    assert names[:3] == ["recording.mcap", "recording.1.mcap", "recording.2.mcap"] and names[-1] == "recording.11.mcap"
+    for path in (base, tmp_path / "run"):
+        reader = RecordingReader(path)
+        assert [m.log_time_ns for m in reader.messages()] == [1000 + i for i in range(12)]
+        assert reader.error is None and reader.path == base
+    assert [m.log_time_ns for m in RecordingReader(base, segments=False).messages()] == [1000]
+    assert [m.log_time_ns for m in RecordingReader(tmp_path / "run" / "recording.10.mcap").messages()] == [1010]
+    assert info.main([str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    assert "segments   12" in out and "messages   12" in out
+    (tmp_path / "run" / "other.mcap").write_bytes(base.read_bytes())
+    with pytest.raises(RecordingError, match="several recordings"):
+        RecordingReader(tmp_path / "run")
+
+
+def test_a_damaged_first_segment_does_not_hide_the_next(tmp_path):
+    base = tmp_path / "recording.mcap"
+    write_source_recording(base, frames=60)
+    base.write_bytes(base.read_bytes()[: int(base.stat().st_size * 0.6)])   # a recorder killed mid-chunk
+    with open_segment(base) as w:
+        w.write("rig/odom/wheels", b"after the restart", 5)
+    reader = RecordingReader(base)
+    got = list(reader.messages())
+    assert got[-1].payload == b"after the restart" and len(got) > 2
+    assert set(reader.errors) == {base} and reader.error.startswith("recording.mcap: truncated")
+
+
+def test_stamps_mcap_cannot_store_are_recorded_with_the_receive_time_and_counted(tmp_path):
+    import msgpack
+    path = tmp_path / "stamps.mcap"
+    envelope = {"schema": "flyslam.WheelOdometry", "major": 1, "seq": 1, "frame_id": "base_link"}
+    with RecordingWriter(path) as w:
+        for stamp in (-1, -(2**63), 2**64 - 1, 1.5, 7):
+            w.write("rig/odom/wheels", msgpack.packb({**envelope, "stamp_ns": stamp}), 42)
+    assert w.bad_stamps == 2 + 1   # the two negatives and the float; 2**64 - 1 fits uint64
+    reader = RecordingReader(path)
+    assert [m.publish_time_ns for m in reader.messages()] == [42, 42, 2**64 - 1, 42, 7]
+    assert reader.error is None
+
+
+def test_recorder_survives_bad_stamps_and_a_restart_appends_a_segment(tmp_path, zenoh_port):
+    """Kill -9 the recorder mid-run and start it again on the same --out: both segments read back as one
+    recording holding every message published while a recorder ran; negative stamps are counted in the
+    heartbeat and crash nothing."""
+    import msgpack
+    from common import messages as m
+    from common.bus import BusOptions, Node
+    from tests.helpers import hub
+    out = tmp_path / "recording.mcap"
+    heartbeats = []
+    with Node("feeder", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+        node.subscribe("status/recorder", m.Heartbeat, heartbeats.append)
+        pub = node.publisher("odom/wheels", reliable=True)
+        sent = []
+
+        def publish(n, stamp=None):
+            for _ in range(n):
+                seq = len(sent) + 1
+                stamp_ns = 10**9 + seq if stamp is None else stamp
+                payload = msgpack.packb({"schema": "flyslam.WheelOdometry", "major": 1, "seq": seq,
+                                         "stamp_ns": stamp_ns, "frame_id": "base_link", "wheel_speeds": [1.0]})
+                pub.put_raw(payload)
+                sent.append(payload)
+                time.sleep(0.005)
+
+        for attempt in range(2):
+            heartbeats.clear()
+            recorder = start_module("services.recorder", "--out", str(out), "--keys", "odom/*", "--flush-s", "0.1",
+                                    port=zenoh_port, log_path=tmp_path / f"recorder{attempt}.log")
+            assert wait_until(lambda: heartbeats, 20), (tmp_path / f"recorder{attempt}.log").read_text()
+            time.sleep(1.0)   # its subscription reaches the hub
+            publish(50)
+            publish(3, stamp=-5)
+            publish(50)
+            assert wait_until(lambda: recorder.poll() is None and any(
+                hb.counters.get("bad_stamps", 0) == 3 for hb in heartbeats), 10), "bad stamps not counted"
+            time.sleep(0.3)   # one more flush
+            if attempt == 0:
+                recorder.send_signal(signal.SIGKILL)
+                recorder.wait(10)
+            else:
+                assert stop(recorder) == 0
+    assert sorted(p.name for p in tmp_path.glob("recording*.mcap")) == ["recording.1.mcap", "recording.mcap"]
+    got = [msg.payload for msg in RecordingReader(out).messages()]
+    assert got == sent, f"kept {len(set(got) & set(sent))} of {len(sent)}"
