@@ -19,6 +19,12 @@ class PlannerConfig:
     would have to shift the field and invent values on the entering edge every cycle), and a target
     outside a robot-centred window would have to be projected onto its border, which creates false
     goals.  At 5 cm a 20 m x 20 m map is only 400 x 400 cells.
+
+    Occupancy evidence per cell is a decaying sum of fly weights (fitness scaled so that the mean positive
+    fitness of an update counts 1) and sonar hits, capped at ``evidence_cap`` so that a cell whose flies
+    moved away is freed at most ``half_life * log2(cap / occupied_weight)`` later.  Evidence given with a
+    SensorView decays at ``evidence_half_life_s`` inside that view, where the sensor would renew it, and
+    at ``unseen_half_life_s`` elsewhere, so walls beside and behind a forward camera are not forgotten.
     """
 
     resolution: float = 0.05
@@ -26,31 +32,19 @@ class PlannerConfig:
     origin: tuple[float, float] = (-5.0, -5.0)
     robot_radius: float = 0.2
     safety_margin: float = 0.05          # added to the robot radius when inflating obstacles
-    # Flies between these heights (map z) are obstacles for a ground robot; the rest is floor or overhead.
-    fly_z_min: float = 0.05
-    fly_z_max: float = 1.0
-    # Evidence per cell is a decaying sum of fly weights (fitness scaled so that the mean positive fitness
-    # of an update counts 1) and sonar hits.  A cell is an obstacle at >= occupied_weight; the sum is
-    # capped at evidence_cap so a cell whose flies moved away is freed at most
-    # half_life * log2(cap / threshold) later.
-    occupied_weight: float = 2.0
-    evidence_cap: float = 8.0
-    evidence_half_life_s: float = 2.0
-    # Evidence given with a SensorView decays at evidence_half_life_s only inside that view (where the
-    # sensor would see the obstacle again if it were there) and at this much slower rate elsewhere: the
-    # walls beside and behind the robot are out of a forward camera's view, and forgetting them in a few
-    # seconds opened gaps the field then led the robot through (measured on a recorded corridor run).
-    unseen_half_life_s: float = 60.0
-    sonar_weight: float = 2.0
+    fly_z_min: float = 0.05              # flies between fly_z_min and fly_z_max (map z) are obstacles
+    fly_z_max: float = 1.0               # above it: overhead, not an obstacle for a ground robot
+    occupied_weight: float = 2.0         # evidence at which a cell is an obstacle
+    evidence_cap: float = 8.0            # evidence is capped here (bounds how long a vacated cell stays occupied)
+    evidence_half_life_s: float = 2.0    # evidence half-life inside the view that can renew it
+    unseen_half_life_s: float = 60.0     # evidence half-life outside the current view
+    sonar_weight: float = 2.0            # evidence per sonar echo
     # Solver (multigrid.py).
-    tolerance: float = 1e-4              # largest relative change of phi made by one multigrid cycle
-                                         # counted as converged
+    tolerance: float = 1e-4              # converged when one cycle changes no cell's phi by more than this, relatively
     mg_over_correction: float = 2.0      # exponent of the fine level's coarse factor (see multigrid.py)
     mg_smoothing_sweeps: int = 1         # Gauss-Seidel sweeps before and after each coarse correction
-    mg_krylov_levels: int = 1            # coarse levels 1..k use K-cycles (two cycles + residual minimisation);
-                                         # deeper levels V-cycles (1: fastest since the banded coarsest solve)
-    mg_coarsest: int = 48                # the hierarchy stops at this many unknowns at the latest (solved
-                                         # directly; usually earlier, at a narrow-band level: multigrid_hierarchy)
+    mg_krylov_levels: int = 1            # coarse levels 1..k use K-cycles, deeper ones V-cycles
+    mg_coarsest: int = 48                # most unknowns of the directly solved coarsest level
     max_cycles: int = 200
     # Controller.
     v_max: float = 0.5

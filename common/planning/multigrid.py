@@ -1,5 +1,6 @@
 """Multiplicative aggregation multigrid for the log-space harmonic field (numba): the cycle and the solver.
-Level 0's operator and the aggregation hierarchy are built in multigrid_hierarchy.py.
+Level 0's operator and the aggregation hierarchy are built in multigrid_hierarchy.py; why the field is
+solved this way is in docs/design/planner.md.
 
 The unknown is ``phi = exp(s) * x`` on the ACTIVE cells (compact numbering): ``s`` a fixed log scale
 (the previous solution on a warm start), ``x`` a relative factor near 1.  Laplace's 5-point equation
@@ -10,95 +11,33 @@ The unknown is ``phi = exp(s) * x`` on the ACTIVE cells (compact numbering): ``s
 right-hand side ``f >= 0``, log scale ``s``; level 0 as an ELL table with ``dg = 1``, coarser levels as
 CSR), so nothing ever underflows however small phi gets.
 
-Why multiplicative.  After a map change phi beyond a new narrowing must drop by a common factor
-(e^5 .. e^16 on the benchmark): an additive correction of ``x`` cannot deliver that with relative
-accuracy, and SOR (over-relaxation) does it slowly and non-monotonically — on the 200 x 200 benchmark the
-largest log-phi error *grew* from 9 to 26 during the first ~190 sweeps before converging (measured).
-Here the coarse problem solves for the *full* factor: cells are aggregated (2 x 2 blocks of the level's
-grid, split into 4-connected pieces so no aggregate spans a wall), the interpolation is
-``x * P0`` (the current iterate's shape times a per-aggregate factor ``q``) and the coarse operator is
-its Galerkin (energy) projection, again a similarity-scaled M-matrix with ``f >= 0``, so ``q > 0``.
-This is iterative aggregation-disaggregation, applied recursively.
+The coarse problem solves for the *full* factor of each aggregate (iterative aggregation-disaggregation,
+applied recursively): cells are aggregated in 2 x 2 blocks of the level's grid, split into 4-connected
+pieces so no aggregate spans a wall; the interpolation is ``x * P0`` (the iterate's shape times a
+per-aggregate factor ``q``) and the coarse operator its Galerkin projection, again a similarity-scaled
+M-matrix with ``f >= 0``, so ``q > 0``.  One cycle (``_cycle``):
+- level 0: one Gauss-Seidel sweep, the coarse factors interpolated bilinearly between aggregates and
+  over-corrected (``q ** mg_over_correction``), one sweep back;
+- levels 1..``mg_krylov_levels``: K-cycles (two repetitions combined by GCR steps that minimise the
+  relative residual, Notay); deeper levels one over-corrected repetition;
+- the coarsest level, the first that fits a narrow band (multigrid_hierarchy.BAND_MAX), solved exactly
+  by banded elimination.
 
-Measured on the benchmark's warm update (200 x 200, log-phi error 6 -> 1e-4):
-- plain V-cycles (one Gauss-Seidel sweep before and after): ~0.95 per cycle; W-cycles no better —
-  piecewise-constant interpolation makes each coarse correction about half as large as it should be;
-- two-level with an exact coarse solve: 0.5 per cycle;
-- K-cycle (two cycles per coarse level combined by residual minimisation, Notay) at every coarse level:
-  0.55 per cycle — the fine-to-coarse step is still half-strength;
-- plus over-correction ``q ** 2`` of the fine level's factor (the energy argument above): ~0.15 per
-  cycle, 7-9 cycles to a change per cycle below 1e-4.  That is ``_cycle``.  A flexible GCR over the
-  fine cycles instead of the fixed factor diverged (the residual 2-norm is dominated by the cells next
-  to the object); K-cycles on levels 1-2 only are ~10 % cheaper per warm update but a cold start then
-  needs 5x more cycles.
-Over-correction and the Krylov steps are linear ideas; far from the solution (a cold start guesses
-factors of e^30 wrong) they diverge, so a cycle whose factors leave ``exp(+-LINEAR_BAND)`` falls back to
-plain multiplicative corrections.
+Invariants:
+- over-correction and the Krylov steps are linear ideas: they are used only while every factor of a
+  repetition is within ``exp(+-LINEAR_BAND)`` of 1; outside it (a cold start) corrections are plain
+  multiplicative, the fine level's over-correction clipped to e^OVER_CLIP;
+- the coarsest level's factors are clipped to ``exp(+-COARSE_FACTOR_LOG_MAX)``, so squared iterates
+  stay in float64's range;
+- a NaN reaches the cycle's convergence measure (never read as "no change"), so the planner discards a
+  non-finite field instead of reporting it converged;
+- ``LogFieldSolver.block`` takes cells out of level 0 (couplings zeroed, row fixed at x = 1, log scale
+  DEAD_LOG_SCALE) and keeps the hierarchy: the live cells' field is exactly the rebuilt map's.
 
-Also measured and rejected (issue #7; the cycle count is what the structure above gives, so the work
-went into the cost per cycle): K-cycles on level 1 only — a quarter faster at 200 x 200, but at
-400 x 400 warm updates need 11-12 cycles and, with K-cycles on levels 1-2 or 1-3, some do not converge in
-200 (deeper levels then over-correct) — with the coarsest level at <= 48 unknowns; since the third attempt
-(below) the hierarchy stops at an exactly solved banded level and K-cycles on level 1 only are the
-default; a K-cycle
-that skips its second repetition when the first reduced the residual enough (Notay's test) — fewer
-cycles on some maps, more on others; 3 x 3 or 4 x 4 aggregates below level 1 — 1.5-5x more cycles; two
-smoothing sweeps on level 0 — one cycle fewer, no faster; a wider LINEAR_BAND — slower cold starts.
-
-Cost after the first attempt (200 x 200, 27,500 unknowns, CPU time, loaded machine): a cycle ~1.8 ms —
-level 0 ~0.45 ms (two sweeps, the Galerkin operator of level 1), the K-cycle of level 1 (7,400 unknowns, two
-repetitions) ~0.55 ms, levels 2-6 ~0.7 ms (each level twice as often as the one above); set-up of a new
-map (``fine_system`` and the hierarchy) ~2.8 ms.  What made it so: level 0 on a fixed-width ELL table
-(a CSR row loop cost twice as much), Gauss-Seidel multiplying by ``1 / dg`` computed ahead of the row
-(the division sat on the sweep's row-to-row dependency chain), one-pass Galerkin operators with the
-per-aggregate normalisation divided out per coarse row, the GCR step in three passes instead of seven,
-and exponentials / logarithms over whole arrays done by numpy (several times numba's scalar ones).
-Numba calls with many array arguments cost ~100 ns each: kernels inline their per-row work.
-
-Map changes that only block cells (an object appeared; issue #7, second attempt).  The aggregates and
-coarse patterns depend only on the graph, and the Galerkin operators are rebuilt every cycle anyway, so
-``LogFieldSolver.block`` cuts the cells out of level 0 (couplings zeroed, row fixed at x = 1, log scale
-DEAD_LOG_SCALE so they weigh nothing in any aggregate) and keeps everything else: the set-up of a 200 x 200
-warm update drops from ~2.8 ms to nothing, with the same cycle counts and errors on the bench's maps (the
-planner rebuilds when cells are freed or >10 % are cut out).  With it, the solver is no longer rebased
-after every solve (its level-0 scales stay valid; ``block`` updates only the aggregates it touches).
-Also measured this session and rejected (200 x 200 bench maps, five warm updates, 7.4 cycles on
-average): a flexible GCR over whole cycles at the top (weights 1/x^2, 1-4 directions: 7.2-7.6 cycles;
-energy-norm steps: 15); 20-60 Gauss-Seidel sweeps on a window around the new object before the first
-cycle (7.0-7.2 cycles, +0.1-0.7 ms) — after the first cycles the largest error is far away (the far
-end of the last dead-end corridor) and about half the cells are within 10x of it; K-cycles on level 1
-only once a cycle's change is below 0.3 (~15 % faster at 200 x 200 but errors 1.9e-5, and at 400 x 400
-up to 44 cycles; with a fall-back to full K-cycles on slow progress no gain at 400); aggregates of
-(y - 1) // 2 (no fewer cycles, errors 1.9e-5); over-relaxed level-0 sweeps (omega 1.15 / 1.3: 8.8 / 11.4
-cycles); over-correction 1.7 / 2.3 (8.0 / 8.2 cycles); vectorised exp / log (1 ulp) for the per-visit
-level scales and coarse log scales (their share fell from ~0.14 to ~0.09 ms per cycle, but a cycle
-measured 1.56-1.65 ms either way).  Two level-0 sweeps before and after the coarse correction
-(``cycle(..., fine_sweeps=2)``, coarse levels still one): 6-7 instead of 7-8 cycles per warm update at
-100 / 200 / 400 and smaller errors (0.8e-6 .. 5e-6); ~14 % faster at 200 x 200 on one set of five
-objects, but on bench/planner.py's own five 6-7 instead of 7-8 cycles still has median 7 (three of them
-stopped at a change of 1.1-1.3e-4, just above the tolerance) and the median warm update was ~5 % slower
-(12.9 vs 13.6 ms, same process, four runs each), so the planner keeps one.
-
-Third attempt (issue #7: 12.4 -> 9.0 ms at 200 x 200, 7 -> 6 cycles).  Two changes, each of which alone
-gained little:
-- Level 0's coarse factors are interpolated bilinearly (``interp_table``, ``_interp_factors``) instead of
-  applied per aggregate: in the linear phase each cycle then cuts the error ~10x instead of ~6x, but the
-  warm updates still took 6-7 cycles of the same cost (the K-cycles below dominate: ~1.1 of 1.55 ms).
-- The hierarchy stops at the first level that fits a narrow band (multigrid_hierarchy.BAND_MAX) and
-  solves it exactly by banded elimination (``_band_solve``).  On the corridor maps that is a chain-like
-  level of a few hundred unknowns, which the K-cycles of four more levels used to solve inexactly.
-With that exact level, K-cycles on level 1 alone (``PlannerConfig.mg_krylov_levels = 1``: levels 2.. are
-plain V-cycles with the over-corrected factor) converge as fast as K-cycles everywhere did, at
-~1.2 instead of ~1.5 ms per cycle; without it, K-cycles on level 1 only needed up to 15 cycles at
-400 x 400.  Warm updates on the bench's five objects: 6, 6, 6, 6, 7 cycles at 200 x 200 (7, 7, 6, 6, 6
-at 400), the largest log-phi error 1.1e-5.  Also measured and rejected: the bilinear interpolation on
-the coarse levels too (no fewer cycles), in log space or without the diagonal block (same counts),
-over-correction 1.8-2.5 with it (same or more), OVER_CLIP e^0.5-e^3 (same), plain V-cycles everywhere
-(the over-correction compounds over the levels: diverges), K-cycles on levels 1-2 (one cycle more
-often, slower), K-cycles everywhere until a cycle's change falls below 1 / 0.3 / 0.05 and on levels
-1-2 after that (no faster at 200 x 200; at 400 x 400 one warm update took 90-95 cycles), a banded level
-up to half-width 12 (BAND_MAX: slower at 400 x 400), and a branch-free level-0 Galerkin build (every
-entry added to a slot, the within-aggregate ones to a per-aggregate slot: 229 instead of 188 us).
+What keeps a cycle cheap: level 0 on a fixed-width ELL table; Gauss-Seidel multiplying by ``1 / dg``
+computed ahead of the row; one-pass Galerkin builds with the per-aggregate normalisation divided out per
+coarse row; exponentials and logarithms over whole arrays done by numpy; kernels that inline their
+per-row work (a numba call with many array arguments costs ~100 ns).
 """
 from __future__ import annotations
 
@@ -109,30 +48,24 @@ from .multigrid_hierarchy import Hierarchy, ell_emap, fine_system, interp_table,
 from .multigrid_hierarchy import pad_rows4  # noqa: F401 (re-exported)
 
 
-# Outside the linear band the fine level's factor is still over-corrected, by at most e^OVER_CLIP: a warm
-# update's first cycles carry the factor of a new narrowing (e^2..e^5) at half strength otherwise
-# (measured: 7-8 instead of 8-9 cycles per warm update, 12/18/24 instead of 15/20/26 for a cold start
-# at 100/200/400 cells a side).  Re-measured with clip e^1 / e^2 / e^3 / e^30 on the bench's maps:
-# warm updates 7.8 / 7.4 / 7.4 / 7.4 cycles at 200 x 200 (five updates), cold starts 19 / 17 / 16 / 13 at
-# 200 and 25 / 23 / 22 / 17 at 400.  The converged warm updates' largest log-phi errors at 400 x 400 are
-# 2e-6 .. 2.5e-5 with e^1 and e^2 but up to 5e-5 with e^3 (fewer, larger steps end further inside the
-# tolerance's slack), so e^2.
+# Outside the linear band the fine level's factor is still over-corrected, by at most e^OVER_CLIP, so a
+# warm update's first cycles carry the factor of a new narrowing at full strength; a larger clip ends
+# converged fields further inside the tolerance's slack.
 OVER_CLIP = 2.0
+# Over-correction and Krylov steps are used only while every factor is within exp(+-LINEAR_BAND) of 1.
 LINEAR_BAND = 0.5
 # The coarsest level's factors are clipped to exp(+-COARSE_FACTOR_LOG_MAX).  Solved exactly, a long
-# chain-like level (a narrow serpentine's, on a cold start) asks for factors far below e^-700, which
-# float64 cannot hold; and the levels above square their iterate (the Galerkin weights phi^2), so even
-# e^-400 underflowed there and gave a NaN or a division by zero (issue #7 review: 0.6-0.7 m corridors on
-# a 10 m map).  At e^+-100 two K-cycle repetitions and level 0's over-correction stay within e^+-250, whose
-# squares float64 holds; the field then gets there over a few more cycles (2-5 on those maps; none on
-# the bench's warm updates).
+# chain-like level (a narrow serpentine's, on a cold start) can ask for factors far below e^-700, and the
+# levels above square their iterate (the Galerkin weights phi^2).  At e^+-100 two K-cycle repetitions and
+# level 0's over-correction stay within e^+-250, whose squares float64 holds; the field reaches the true
+# factor over a few more cycles.
 COARSE_FACTOR_LOG_MAX = 100.0
 
 
 @njit(cache=True)
 def _gs(x, dg, ip, ind, vals, f, forward, four):
     """One Gauss-Seidel sweep.  ``acc * (1 / dg)``, not ``acc / dg``: the reciprocal does not wait for
-    the previous row, so the division leaves the sweep's row-to-row dependency chain (2.5x faster).
+    the previous row, so the division leaves the sweep's row-to-row dependency chain.
     ``four``: every row has exactly 4 entries (``pad_rows4``), a fixed-length row."""
     n = x.size
     for kk in range(n):
@@ -152,7 +85,7 @@ def _gs(x, dg, ip, ind, vals, f, forward, four):
 @njit(cache=True)
 def relative_residual(x, dg, ip, ind, vals, f, out):
     """``out = f - M x``; returns max |out_i| / (dg_i x_i): the largest relative change a Jacobi sweep
-    would make, i.e. the same measure as the old 'relative change per sweep' tolerance."""
+    would make."""
     worst = 0.0
     for i in range(x.size):
         acc = f[i] - dg[i] * x[i]
@@ -214,7 +147,7 @@ def _coarse_operator_scaled(x, E2, S, dg, ip, ind, vals, f, agg, emap, cptr, sc,
         if u > m[a]:
             m[a] = u
         # the diagonal's contributions summed in a register first: read-modify-writes of dgc[a] by
-        # every entry formed a chain through memory that dominated the pass
+        # every entry would form a chain through memory
         dsum = u * dg[i]
         e0, e1 = (4 * i, 4 * i + 4) if four else (ip[i], ip[i + 1])
         for e in range(e0, e1):
@@ -422,7 +355,7 @@ def _over_correct(q, over):
                     q[a] = q[a] ** over
         elif OVER_CLIP > 0.0 and over == 2.0:
             # q * clip(q, e^-OVER_CLIP, e^OVER_CLIP): the same as below without an exponential and a
-            # logarithm per factor (~0.1 ms per far-from-converged cycle at 200 x 200)
+            # logarithm per factor
             chi = np.exp(OVER_CLIP)
             clo = 1.0 / chi
             for a in range(q.size):
@@ -676,7 +609,7 @@ def _cycle(L, NN, NNZ, PO, EO, NO, IP, IND, AGG, EMAP, S, DG, VALS, F, X, XS, R,
                 # R and W (residual at q = 1, GCR weights) were written with the level's operator
                 n, no = NN[l], NO[l]
                 # the level's log scale is fixed during its two repetitions: exp(s - max s) once, not
-                # a log and an exp per cell and repetition in _coarse_operator (~6 % of a cycle)
+                # a log and an exp per cell and repetition in _coarse_operator
                 nco = NO[l + 1]
                 _level_scales_into(S[no:no + n], AGG[no:no + n], EB[no:no + n], SB[nco:nco + NN[l + 1]])
         elif l == 0:
@@ -809,8 +742,8 @@ class LogFieldSolver:
     def __init__(self, state: np.ndarray, s_padded: np.ndarray, coarsest: int = 48,
                  recycle: "LogFieldSolver | None" = None):
         """``recycle``: a solver that will not be used again (the previous map's), whose work buffers are
-        reused when large enough — fresh memory costs a page fault per 4 kB on first touch, ~1 ms for
-        the ~5 MB of a 200 x 200 map (every buffer is written before it is read)."""
+        reused when large enough — fresh memory costs a page fault per 4 kB on first touch (every
+        buffer is written before it is read)."""
         cells, nb, w4, f, ip, ind, cy, cx = fine_system(state, s_padded)
         self.cells, self.nb, self.w4, self._cy, self._cx = cells, nb, w4, cy, cx
         self.hier = Hierarchy(ip, ind, cy, cx, coarsest)

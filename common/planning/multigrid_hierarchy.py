@@ -2,7 +2,7 @@
 into the next, the coarse sparsity patterns, and their flattening for the numba cycle (multigrid.py);
 the banded coarsest level's ordering; level 0's bilinear prolongation table.
 
-Split from multigrid.py, which keeps the cycle and the solver: this part depends only on which cells are
+multigrid.py keeps the cycle and the solver; this part depends only on which cells are
 ACTIVE (and level 0's weights on the log scale), so it runs once per map change, not per cycle.
 """
 from __future__ import annotations
@@ -23,7 +23,7 @@ def fine_system(state, s):
     their padded row / column.  The operator is stored twice: as a fixed-width (ELL) table — ``nb[i, d]``
     the compact index of the neighbour in direction d (east, west, south, north), ``w4[i, d]`` its weight
     ``exp(s_j - s_i) / 4``, a missing neighbour pointing at i itself with weight 0 — which the cycle's
-    level-0 kernels run on (half the time of CSR: no row pointers, a fixed four-term sum), and as the
+    level-0 kernels run on (no row pointers, a fixed four-term sum), and as the
     CSR pattern ``ip, ind`` (the ELL entries that are not missing, in the same order) from which the
     hierarchy is built.  One exponential per edge between ACTIVE cells: the east / south weight, whose
     reciprocal is the neighbour's west / north weight."""
@@ -157,8 +157,8 @@ def coarse_pattern(indptr, indices, agg, nc):
 def pad_rows4(cptr, cind, emap):
     """A CSR pattern whose rows have at most 4 entries, padded to exactly 4 (a padding entry points at its
     own row and its value stays 0), and the finer level's entry map moved to the padded positions.  The
-    kernels run such a level with a fixed four-term row (``four``), which the compiler unrolls: on the
-    ELL-like grid of level 1 (every row <= 4 entries) the CSR row loop was the slow part."""
+    kernels run such a level with a fixed four-term row (``four``), which the compiler unrolls (level 1
+    of a grid map has every row <= 4 entries)."""
     nc = cptr.size - 1
     deg = np.diff(cptr)
     rows = np.repeat(np.arange(nc), deg)
@@ -171,14 +171,9 @@ def pad_rows4(cptr, cind, emap):
 
 # The coarsest level.  The hierarchy stops at the first coarse level whose couplings fit in a band of
 # half-width BAND_MAX once its nodes are in reverse Cuthill-McKee order; the cycle solves that level
-# exactly by banded elimination, O(n b^2) (multigrid._band_solve).  Corridors give such levels early:
-# on the bench's 200 x 200 serpentine, level 3 (674 unknowns, b = 8), where the hierarchy used to go on
-# to 22 unknowns and the K-cycles' inexact solves of these chain-like levels were what needed K-cycles on
-# every level.  With the exact solve, K-cycles on level 1 alone converge as fast (PlannerConfig.
-# mg_krylov_levels).  An open room still stops at ~50-170 unknowns (b 5-8).  Measured (cycle cost,
-# K-cycles on level 1): BAND_MAX 4 / 8 / 12 -> 1.16 / 1.21 / 1.20 ms at 200 x 200, 4.6 / 4.4 / 5.0 ms
-# at 400 x 400 (where 12 takes level 3, 2,603 unknowns); without it (only the <= 48-unknown level, by
-# the same elimination) the 400 x 400 serpentine's warm updates need 6-15 cycles instead of 6-7.
+# exactly by banded elimination, O(n b^2) (multigrid._band_solve).  Corridors give such chain-like
+# levels early (a few hundred unknowns); solving them exactly is what lets K-cycles on level 1 alone
+# converge (PlannerConfig.mg_krylov_levels).  An open room stops at ~50-170 unknowns.
 BAND_MAX = 8
 BAND_PROBE_MAX = 4000       # larger levels are not probed (scipy's ordering of them costs ~1 ms)
 
@@ -200,9 +195,9 @@ class Hierarchy:
     """Aggregates and coarse sparsity patterns of every level, flattened for the numba cycle.  Depends
     only on which cells are ACTIVE, so it is rebuilt when the map changes, not per cycle.  Level 0's
     own entries are not copied into the flat arrays (the cycle reads level 0 from the solver's ELL
-    table; ``nnz[0]`` is 0 there): ``emap0`` maps its CSR entries to level 1's.  Copying them cost
-    ~1 ms per map change (3 MB of fresh memory).  The coarsest level is solved by banded elimination in
-    the order ``rank`` (its node -> row), whose half-bandwidth is ``band`` (see BAND_MAX)."""
+    table; ``nnz[0]`` is 0 there): ``emap0`` maps its CSR entries to level 1's.  The coarsest level is
+    solved by banded elimination in the order ``rank`` (its node -> row), whose half-bandwidth is
+    ``band`` (see BAND_MAX)."""
 
     def __init__(self, indptr, indices, cy, cx, coarsest: int = 48, band_max: int = BAND_MAX):
         ips, inds, aggs, emaps, sizes = [indptr], [np.zeros(0, np.int64)], [], [], [cy.size]

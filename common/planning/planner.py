@@ -171,7 +171,7 @@ class HarmonicPlanner:
     def _block_only(self, new_state: np.ndarray) -> bool:
         """A change that only turned ACTIVE cells BLOCKED (an object appeared, or cells it cut off):
         take them out of the current solver (``LogFieldSolver.block``) instead of building a new system
-        and hierarchy — ~3 ms of a 200 x 200 warm update.  Not done once the removed cells exceed
+        and hierarchy (most of a warm update's set-up).  Not done once the removed cells exceed
         ``BLOCK_REUSE_FRACTION`` of the solver's cells (the old coarse spaces fit the map less and less)."""
         sv = self._solver
         if not self._has_solution or sv is None:
@@ -191,8 +191,8 @@ class HarmonicPlanner:
 
     def _store_solution(self) -> None:
         """Copy the solver's log phi to the padded grid (r = 1).  The solver itself is not rebased: its
-        level-0 scales stay valid for the next warm update (a rebase and their recomputation cost
-        ~0.2 ms at 200 x 200); ``solve`` rebases when the factors drift far from 1."""
+        level-0 scales stay valid for the next warm update; ``solve`` rebases when the factors drift far
+        from 1."""
         sv = self._solver
         self._s.ravel()[sv.cells] = sv.log_phi()
         self._r.ravel()[sv.cells] = 1.0
