@@ -4,10 +4,10 @@ Public API: ``EvolverConfig``, ``FlyEvolver`` (see ``common.fly.evolver``), and 
 ``inlier_fraction`` (``common.fly.metrics``) shared by tests, benches and services.
 
 Threading: the fitness kernel is a numba ``prange`` loop.  numba's OpenMP layer busy-waits between
-parallel regions by default, which on a small machine shared with other busy processes turns a 0.5 ms
-evaluation into 5–10 ms (the spinning thread waits for a descheduled peer).  Importing this package sets
-``OMP_WAIT_POLICY=PASSIVE`` unless the environment already chose a policy; it only takes effect when
-no OpenMP parallel region has run yet in the process.
+parallel regions by default, which on a small machine shared with other busy processes turns a
+sub-millisecond evaluation into several milliseconds (the spinning thread waits for a descheduled
+peer).  Importing this package sets ``OMP_WAIT_POLICY=PASSIVE`` unless the environment already chose a
+policy; it only takes effect when no OpenMP parallel region has run yet in the process.
 """
 import os
 

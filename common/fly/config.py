@@ -16,6 +16,12 @@ class EvolverConfig:
 
     Depths are metres along the left optical axis; pixel quantities are in pixels of the calibrated
     (rectified) images.
+
+    Each offspring is made by exactly one operator (``*_rate``; the rest, 1 − sum, is mutation in
+    (u_left, v, disparity) space, i.e. scaled to stereo depth uncertainty).  In steady state a mutated
+    or exchanged child competes with its own parent (deterministic crowding, every fly keeps its image
+    niche; local children come from every fly once per generation); other children replace the loser
+    of a reverse tournament.  Fitness is G·F / (SSD_mean + F) (see common.fly.fitness).
     """
     population: int = 5000
     neighbourhood: int = 7            # N of the N×N window compared between left and right (odd, 3..15)
@@ -25,50 +31,30 @@ class EvolverConfig:
     selection: str = "tournament"     # 'tournament' | 'elitist'
     tournament_size: int = 2
     elite_fraction: float = 0.1       # elitist ranking: parents drawn from this top fraction; elites kept
-    # Operator mix: each offspring is made by exactly one operator; the rest (1 − sum) is mutation.
     crossover2_rate: float = 0.1      # 2-parent barycentric crossover (children on the parents' line)
     crossover3_rate: float = 0.1      # 3-parent barycentric crossover (children in the parents' plane)
     immigration_rate: float = 0.02    # fresh flies drawn like the initialisation
-    exchange_rate: float = 0.6        # depth exchange: the child keeps its parent's pixel and takes the
-                                      # disparity of an image neighbour (uniform crossover of the (u, v | d)
-                                      # genes) — spreads a found surface along the image, PatchMatch-like
-    # Gaussian mutation in (u_left, v, disparity) space, i.e. scaled to stereo depth uncertainty.
+    exchange_rate: float = 0.6        # depth exchange: parent's pixel, an image neighbour's disparity
     mutation_sigma_px: float = 0.7    # image-plane step (pixels) of the left projection
     mutation_sigma_disparity: float = 4.0   # initial disparity step (pixels)
-    adaptive_mutation: bool = True    # per-fly disparity step: steady state ×1.5 after a winning mutation,
-                                      # ×0.85 after a losing one; generational: log-normal self-adaptation
+    adaptive_mutation: bool = True    # per-fly disparity step: ×1.5 / ×0.85 after a win / loss (steady state)
     mutation_sigma_disparity_min: float = 0.05
-    # Steady state: a mutated child competes with its parent (deterministic crowding) — keeps every fly
-    # in its own image niche; other children replace the loser of a reverse tournament.
-    # Local children (mutation, exchange) come from every fly once per generation.
-    crowding: bool = True
-    batch_fraction: float = 1.0       # steady state: offspring made per batch, as a fraction of N (children of
-                                      # a batch are evaluated together, then inserted one at a time)
-    # 2-D sharing over a grid of cells in the left image.
-    sharing_radius_px: float | None = None   # cell size; None = sqrt(W·H / population)
+    crowding: bool = True             # steady state: a mutated or exchanged child competes with its parent
+    batch_fraction: float = 1.0       # steady state: offspring per batch (evaluated together), fraction of N
+    sharing_radius_px: float | None = None   # 2-D sharing cell size in the left image; None = sqrt(W·H / N)
     sharing_strength: float = 1.0            # 0 disables sharing
-    # Fitness = G·F / (SSD_mean + F): G a saturating gradient normaliser in [0, 1], F a floor under the
-    # mean squared difference tied to the image noise (avoids the degenerate optimum on flat patches).
-    subpixel: bool = True             # sub-pixel disparity: right window interpolated along the epipolar
-                                      # line at (nearest left pixel − exact disparity); else nearest pixels
+    subpixel: bool = True             # right window interpolated along the epipolar line; else nearest pixels
     subpixel_vertical: bool = False   # full bilinear sampling of both windows (slower, same disparity)
-    noise_sigma: float | None = None  # grey-level noise std; None = estimated (Immerkær, flattest 30 % of
-                                      # pixels) on the first frame and every 30 frames after
+    noise_sigma: float | None = None  # grey-level noise std; None = estimated (Immerkær) every 30 frames
     ssd_floor_scale: float = 2.0      # F = ssd_floor_scale · 2·σ²  (2σ² = variance of a noisy difference)
-    gradient_saturation: float = 6.0  # G = g²/(g² + (k·σ)²), g² the mean squared x gradient of the least
-                                      # textured half-window
-    window_sigma: float | None = 1.2  # Gaussian weighting of the window (px), favours the centre
-                                      # (thin structures, depth edges); None = flat
-    mean_removal_px: int | None = 15  # subtract each image's local mean over this box (odd px) before
-                                      # matching: robust to exposure differences; None = raw images
+    gradient_saturation: float = 6.0  # k in G = g²/(g² + (k·σ)²), g² the mean squared gradient
+    window_sigma: float | None = 1.2  # Gaussian window weighting (px), favours the centre; None = flat
+    mean_removal_px: int | None = 15  # local-mean box (odd px) subtracted before matching; None = raw images
     gradient_window: int | None = None  # box (px) over which G averages gradient energy; None = N
     gradient_min_half: bool = True    # G from the least textured half-window (see fitness.gradient_energy)
     gradient_epipolar: bool = True    # G from the x gradient only (what constrains disparity); else |∇|²
 
-    # Fitness kernel threading: True (all cores), False (calling thread) or 'auto' — batches of 1,000 flies
-    # or more go to whichever kernel has lately been cheaper per fly (a parallel region on a busy shared
-    # machine can stall for a scheduler time slice; see common/fly/threads.py).
-    parallel: bool | str = "auto"
+    parallel: bool | str = "auto"     # fitness kernel: True all cores, False calling thread, 'auto' (threads.py)
     parallel_min_flies: int = 20000   # with parallel='auto' and the chooser not yet informed: threshold
 
     def __post_init__(self):

@@ -146,7 +146,7 @@ class FlyEvolver:
         (4×4 rigid transform between the left optical frames of two frames), then re-score.
 
         ``rescore=False`` when the new frame's images follow at once (``set_images`` re-scores): scoring
-        the moved flies on the old images would only be thrown away (~1 ms on the per-frame path)."""
+        the moved flies on the old images would only be thrown away."""
         T = np.asarray(T_new_old, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"T_new_old must be a finite 4×4 matrix, got shape {T.shape}")

@@ -6,11 +6,6 @@ and re-scored on the new frame is already most of the answer, so :func:`settle` 
 its quality (:func:`population_quality`) is back to a fraction of what it was before the frame
 (:class:`SettlePolicy`), within a time budget, and the service publishes it then instead of after a
 fixed settle time.
-
-(Pacing the evolver to the localiser — holding new frames back while the localiser is busy — was
-measured too, with bench/pipeline.py on the 2-core machine: it lowered the share of frames that got a
-pose and raised p50 latency, because the evolver then waited for frames and the localiser for
-populations; it was removed.)
 """
 from __future__ import annotations
 
