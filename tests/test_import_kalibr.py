@@ -1,0 +1,151 @@
+"""Kalibr camchain.yaml with fisheye (equidistant) lenses → rectified rig, on a synthetic TUM-VI-like rig.
+
+Known 3-D points are drawn as small blobs into the two raw fisheye images (cv2.fisheye.projectPoints);
+after rectification the blobs of one point must sit on the same row in both images and where the
+rectified calibration (focal length, baseline) says they should.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from common.camera import CalibrationError
+from common.geometry import make_transform, rot_x, rot_y, rot_z
+from common.importers.base import DatasetLayoutError
+from common.importers.kalibr import load_camchain, read_camchain, rectify_pair
+
+W = H = 512
+K0 = np.array([[190.98, 0, 254.93], [0, 190.97, 256.90], [0, 0, 1]])
+K1 = np.array([[190.44, 0, 252.60], [0, 190.43, 254.92], [0, 0, 1]])
+D0 = np.array([0.00348, 0.00072, -0.00205, 0.00020])
+D1 = np.array([0.00340, 0.00177, -0.00266, 0.00033])
+BASELINE = 0.101
+# cam0 → cam1 (x_cam1 = T·x_cam0): cam1 sits 0.101 m along cam0's +x, slightly rotated and offset.
+T_C1_C0 = make_transform(rot_x(0.004) @ rot_y(-0.006) @ rot_z(0.003), [-BASELINE, -0.002, -0.001])
+
+
+def _rows(T: np.ndarray) -> str:
+    return "\n".join(f"  - [{', '.join(repr(float(v)) for v in row)}]" for row in T)
+
+
+def _camchain(path, lens="equidistant", model="pinhole", drop=None) -> str:
+    cams = []
+    for name, K, D in (("cam0", K0, D0), ("cam1", K1, D1)):
+        entry = {"camera_model": f"  camera_model: {model}",
+                 "distortion_coeffs": f"  distortion_coeffs: [{', '.join(repr(float(v)) for v in D)}]",
+                 "distortion_model": f"  distortion_model: {lens}",
+                 "intrinsics": f"  intrinsics: [{K[0, 0]}, {K[1, 1]}, {K[0, 2]}, {K[1, 2]}]",
+                 "resolution": f"  resolution: [{W}, {H}]", "rostopic": f"  rostopic: /{name}/image_raw"}
+        if drop:
+            entry.pop(drop, None)
+        extra = f"  T_cn_cnm1:\n{_rows(T_C1_C0)}\n" if name == "cam1" else ""
+        cams.append(f"{name}:\n  T_cam_imu:\n{_rows(np.eye(4))}\n{extra}" + "\n".join(entry.values()))
+    path.write_text("\n".join(cams) + "\n")
+    return path
+
+
+def _points(rng) -> np.ndarray:
+    """A 7×7 fan of directions out to ±45° off axis, each at a random depth of 1.5–6 m (cam0 frame)."""
+    a = np.deg2rad(np.linspace(-45, 45, 7))
+    ax, ay = np.meshgrid(a, a)
+    dirs = np.stack([np.tan(ax), np.tan(ay), np.ones_like(ax)], -1).reshape(-1, 3)
+    return dirs * rng.uniform(1.5, 6.0, (len(dirs), 1))
+
+
+def _render(points_cam: np.ndarray, K, D) -> np.ndarray:
+    """Gaussian blobs (σ 1.2 px) at the fisheye projections of ``points_cam``."""
+    uv, _ = cv2.fisheye.projectPoints(points_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D.reshape(4, 1))
+    img = np.zeros((H, W), np.float64)
+    yy, xx = np.mgrid[0:H, 0:W]
+    for u, v in uv.reshape(-1, 2):
+        x0, y0 = int(round(u)), int(round(v))
+        sl = np.s_[max(y0 - 5, 0):y0 + 6, max(x0 - 5, 0):x0 + 6]
+        img[sl] += np.exp(-((xx[sl] - u) ** 2 + (yy[sl] - v) ** 2) / (2 * 1.2 ** 2))
+    return np.clip(img * 250, 0, 255).astype(np.uint8)
+
+
+def _centroids(img: np.ndarray) -> np.ndarray:
+    """Intensity-weighted centroids (N, 2) of the blobs of a rectified image."""
+    n, labels = cv2.connectedComponents((img > 20).astype(np.uint8))
+    w = img.astype(np.float64).ravel()
+    yy, xx = np.indices(img.shape)
+    mass = np.bincount(labels.ravel(), w, n)
+    cu = np.bincount(labels.ravel(), w * xx.ravel(), n) / np.maximum(mass, 1e-9)
+    cv = np.bincount(labels.ravel(), w * yy.ravel(), n) / np.maximum(mass, 1e-9)
+    return np.stack([cu, cv], 1)[1:]
+
+
+def _nearest(found: np.ndarray, expected: np.ndarray) -> np.ndarray:
+    """For each expected point, the nearest found centroid (NaN where none is within 3 px)."""
+    d = np.linalg.norm(expected[:, None] - found[None], axis=2)
+    j = d.argmin(1)
+    out = found[j].copy()
+    out[d[np.arange(len(expected)), j] > 3.0] = np.nan
+    return out
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    X0 = _points(np.random.default_rng(4))
+    X1 = X0 @ T_C1_C0[:3, :3].T + T_C1_C0[:3, 3]
+    return X0, _render(X0, K0, D0), _render(X1, K1, D1)
+
+
+def test_fisheye_camchain_rectifies_rows_and_recovers_baseline(tmp_path, rendered):
+    X0, raw_left, raw_right = rendered
+    rig, cams = load_camchain(_camchain(tmp_path / "camchain.yaml"))
+    calib = rig.calibration
+    assert cams["cam1"].rostopic == "/cam1/image_raw" and rig.lens == "equidistant"
+    assert calib.baseline == pytest.approx(np.linalg.norm(T_C1_C0[:3, 3]), rel=1e-6)
+    assert (calib.width, calib.height) == (W, H)
+    left, right = rig.rectify(raw_left, raw_right)
+    # Where the rectified model puts each point, in the rectified left frame.
+    u_l, u_r, v = calib.project(X0 @ np.asarray(rig.rotation_left).T)
+    found_l = _nearest(_centroids(left), np.stack([u_l, v], 1))
+    found_r = _nearest(_centroids(right), np.stack([u_r, v], 1))
+    both = np.isfinite(found_l[:, 0]) & np.isfinite(found_r[:, 0])
+    assert both.sum() >= 0.9 * len(X0), f"only {both.sum()} of {len(X0)} points found in both rectified images"
+    epipolar = np.abs(found_l[both, 1] - found_r[both, 1])
+    assert epipolar.max() < 0.5, f"rows differ by up to {epipolar.max():.2f} px after rectification"
+    # Baseline from the measured disparities and the true depths (rectified frame), as a user would check it.
+    z = (X0 @ np.asarray(rig.rotation_left).T)[both, 2]
+    measured = np.median((found_l[both, 0] - found_r[both, 0]) * z / calib.fx)
+    assert measured == pytest.approx(BASELINE, rel=0.02)
+    # The rectified calibration itself places the blobs to within half a pixel.
+    assert np.abs(found_l[both] - np.stack([u_l, v], 1)[both]).max() < 0.5
+
+
+def test_fisheye_rectified_image_keeps_the_centre_resolution_and_has_no_empty_border(tmp_path):
+    rig, _ = load_camchain(_camchain(tmp_path / "camchain.yaml"))
+    assert rig.calibration.fx == pytest.approx(K0[0, 0], rel=0.01)
+    left, _ = rig.rectify(np.full((H, W), 200, np.uint8), np.full((H, W), 200, np.uint8))
+    assert (left == 0).mean() < 0.01  # the output does not reach outside the raw image
+
+
+def test_radtan_camchain_goes_through_the_pinhole_model(tmp_path):
+    rig, _ = load_camchain(_camchain(tmp_path / "camchain.yaml", lens="radtan"))
+    assert rig.lens == "radtan"
+    assert rig.calibration.baseline == pytest.approx(np.linalg.norm(T_C1_C0[:3, 3]), rel=1e-6)
+    np.testing.assert_allclose(rig.calibration.D_left, D0)  # raw model carried, as for EuRoC
+
+
+def test_rig_with_the_cameras_swapped_is_refused():
+    R, T = T_C1_C0[:3, :3], T_C1_C0[:3, 3]
+    with pytest.raises(CalibrationError, match="right camera is to the LEFT"):
+        rectify_pair("equidistant", K1, D1, K0, D0, (W, H), R.T, -R.T @ T)  # cam1 given as the left camera
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(drop="intrinsics"), "cam0 has no intrinsics"),
+    (dict(model="omni"), "camera_model 'omni' is not supported"),
+    (dict(lens="fov"), "distortion_model 'fov' is not supported"),
+])
+def test_bad_camchain_names_the_key(tmp_path, kwargs, message):
+    with pytest.raises(DatasetLayoutError, match=message):
+        read_camchain(_camchain(tmp_path / "camchain.yaml", **kwargs))
+
+
+def test_missing_camchain_names_the_file(tmp_path):
+    with pytest.raises(DatasetLayoutError, match="camchain.yaml not found"):
+        read_camchain(tmp_path / "camchain.yaml")
