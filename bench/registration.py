@@ -8,12 +8,12 @@ Figures (milliseconds are medians of repeated runs, numba compile time excluded 
   exact_delta_ms          pseudo_distance_exact: float64 numpy, chunked (the reference)
   exact_numba_delta_ms    the same sum with the parallel numba kernel (field_exact)
   field_build_ms          PseudoDistanceField(B, eps, bounds=A's box) build with the default options
-                          (CIC deposit, FFT far field, near-field cell list) — NOT included in:
+                          (TSC deposit, FFT far field, near-field cell list) — NOT included in:
   fast_delta_ms           field.delta(A): δ evaluated at A's 5,000 (20,000) points on that PREBUILT
                           field, i.e. one far-field interpolation + one near sum per point of A;
                           fast_rel_error = |fast − exact| / exact, fast_grid_shape the grid;
                           fast_grad_rel_error the median over A of |∇S_fast − ∇S_exact| / |∇S_exact|
-  fast_before_*           the same with the defaults before the TSC deposit (CIC, near_cells=2),
+  fast_before_*           the same with a cloud-in-cell deposit and near_cells=2 (the comparison),
                           timed interleaved with fast_delta_ms on the same run
   fast_lean_*             the same with the registration's field options (max_cells=120,000,
                           near_cells=1): cheaper build
@@ -46,8 +46,8 @@ from common.registration import (PseudoDistanceField, StereoModel, field_exact, 
 TRUTH = (0.3, 0.8, np.deg2rad(4.0))
 
 # PseudoDistanceField options per figure prefix: "" the defaults (TSC deposit, r_c = h); "before_" the
-# defaults until 2026-11 (CIC deposit, r_c = 2h, x-y columns of 2 r_c), timed on the same run; "lean_"
-# the options the registration uses (coarser grid, cheaper build).
+# cloud-in-cell comparison (CIC deposit, r_c = 2h, x-y columns of 2 r_c); "lean_" the options the
+# registration uses (coarser grid, cheaper build).
 FIELD_OPTIONS = {"": {},
                  "before_": dict(deposit="cic", near_cells=2.0, cells_per_radius=0.5),
                  "lean_": dict(max_cells=120_000, near_cells=1.0)}
@@ -121,7 +121,7 @@ def measure(n, eps, repeat):
         out[tag + "grid_shape"] = list(field.shape)
         out[tag + "near_radius_m"] = field.rc
     # The configurations are timed in interleaved rounds, so that load from other processes on the
-    # shared machine falls on all of them alike (the before/after comparison is on the same run).
+    # shared machine falls on all of them alike.
     walls = {key: [] for key in fields}
     cpus = {key: [] for key in fields}
     for _ in range(repeat):
