@@ -27,8 +27,17 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
 ``[vars]`` (defaults) as overridden by ``--var NAME=VALUE`` on the command line. Services stop in the reverse of start
 order (so list the recorder first: it stops last and records everything). The supervisor opens its own
 bus session first (it becomes the local hub), watches every service's liveliness token and heartbeat,
-and writes ``run.json`` and per-service logs under ``--out``. Children get PR_SET_PDEATHSIG so that even a
-SIGKILLed supervisor leaves no orphan. Exit status: 0, or 1 when a required service gave up.
+and writes per-service logs and ``run.json`` under ``--out``: written as the run starts and rewritten
+(atomically) whenever a service starts, exits or restarts, so a supervisor killed with SIGKILL still
+leaves a readable record.
+
+No orphans: every service runs in its own process group, killed as a group when the service exits (a
+dead bridge's ``rerun --serve-web`` child must not keep its port). Children get PR_SET_PDEATHSIG
+(SIGTERM when the supervisor dies, whatever killed it), and a watchdog process, in its own session,
+holds the list of live groups through a pipe: when the pipe closes without a goodbye (the supervisor
+was SIGKILLed), it SIGTERMs every group, SIGKILLs what is left after a grace period, grandchildren
+included, and marks ``run.json``. Exit status: 0, or 1 when a required service gave up, 2 for a bad
+launch file or flag.
 """
 from __future__ import annotations
 
@@ -89,49 +98,191 @@ class LaunchFile:
     report: str | None = None
 
 
+# field -> (kind, expected), kinds checked by _check_field; bool is never taken for a number
+SERVICE_FIELDS = {
+    "name": ("str", "a string"), "module": ("str", "a module name (string)"),
+    "args": ("strlist", "a list of strings"), "restart": ("str", f"one of {', '.join(RESTART_POLICIES)}"),
+    "max_restarts": ("count", "an integer ≥ 0"), "backoff_s": ("seconds", "a number of seconds ≥ 0"),
+    "required": ("bool", "true or false"), "ends_run": ("bool", "true or false"),
+    "liveliness_timeout_s": ("seconds", "a number of seconds ≥ 0 (0: not checked)"),
+    "stop_timeout_s": ("seconds", "a number of seconds ≥ 0"),
+    "start_delay_s": ("seconds", "a number of seconds ≥ 0"), "nice": ("nice", "an integer in 0..19"),
+}
+RUN_FIELDS = {
+    "duration_s": ("seconds", "a number of seconds ≥ 0 (0: until stopped)"), "robot": ("str", "a string"),
+    "latch": ("strlist", "a list of stream names"), "report": ("report", '"pipeline" or absent'),
+}
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _field_ok(kind: str, v) -> bool:
+    return {
+        "str": lambda: isinstance(v, str) and v != "",
+        "strlist": lambda: isinstance(v, list) and all(isinstance(a, str) for a in v),
+        "count": lambda: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+        "seconds": lambda: _is_number(v) and v >= 0 and v == v and v != float("inf"),
+        "bool": lambda: isinstance(v, bool),
+        "nice": lambda: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 19,
+        "report": lambda: v == "pipeline",
+    }[kind]()
+
+
+def _check_fields(where: str, table: dict, fields: dict) -> None:
+    for key, value in table.items():
+        if key not in fields:
+            raise LaunchError(f"{where}: unknown field '{key}'; allowed: {', '.join(fields)}")
+        kind, expected = fields[key]
+        if not _field_ok(kind, value):
+            raise LaunchError(f"{where}: {key} must be {expected}, got {value!r}")
+
+
 def load_launch(path: Path) -> LaunchFile:
+    """Read and check a launch file; every problem is a LaunchError naming the file, the field and the
+    expected type (a wrong type fails here, not when the service first fails)."""
+    path = Path(path)
     try:
-        data = tomllib.loads(Path(path).read_text())
+        text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise LaunchError(f"{path}: launch file not found") from None
+    except IsADirectoryError:
+        raise LaunchError(f"{path}: is a directory, not a launch file (TOML)") from None
+    except OSError as e:
+        raise LaunchError(f"{path}: cannot read launch file ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise LaunchError(f"{path}: not UTF-8 text (byte {e.start}); a launch file is TOML") from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise LaunchError(f"{path}: not valid TOML ({e})") from None
+    unknown = set(data) - {"run", "service", "vars"}
+    if unknown:
+        raise LaunchError(f"{path}: unknown table(s) {', '.join(sorted(unknown))}; allowed: run, service, vars")
     run = data.get("run", {})
+    if not isinstance(run, dict):
+        raise LaunchError(f"{path}: run must be a table ([run]), got {run!r}")
+    _check_fields(f"{path}: [run]", run, RUN_FIELDS)
+    raw_services = data.get("service", [])
+    if not isinstance(raw_services, list) or not all(isinstance(r, dict) for r in raw_services):
+        raise LaunchError(f"{path}: service must be an array of tables ([[service]]), got {raw_services!r}")
     services = []
-    known = set(ServiceSpec.__dataclass_fields__)
-    for i, raw in enumerate(data.get("service", [])):
-        where = f"{path}: service #{i + 1}"
-        unknown = set(raw) - known
-        if unknown:
-            raise LaunchError(f"{where}: unknown field(s) {', '.join(sorted(unknown))}")
+    for i, raw in enumerate(raw_services):
+        where = f"{path}: service #{i + 1}" + (f" ({raw['name']})" if isinstance(raw.get("name"), str) else "")
         for req in ("name", "module"):
             if req not in raw:
                 raise LaunchError(f"{where}: missing '{req}'")
-        spec = ServiceSpec(**raw)
-        if spec.restart not in RESTART_POLICIES:
-            raise LaunchError(f"{where} ({spec.name}): restart must be one of {RESTART_POLICIES}, got {spec.restart!r}")
-        if not isinstance(spec.args, list) or not all(isinstance(a, str) for a in spec.args):
-            raise LaunchError(f"{where} ({spec.name}): args must be a list of strings")
-        if not isinstance(spec.nice, int) or not 0 <= spec.nice <= 19:
-            raise LaunchError(f"{where} ({spec.name}): nice must be an integer in 0..19, got {spec.nice!r}")
-        services.append(spec)
+        _check_fields(where, raw, SERVICE_FIELDS)
+        if raw.get("restart", "on-failure") not in RESTART_POLICIES:
+            raise LaunchError(f"{where}: restart must be one of {RESTART_POLICIES}, got {raw['restart']!r}")
+        services.append(ServiceSpec(**raw))
     if not services:
         raise LaunchError(f"{path}: no [[service]] entries")
     names = [s.name for s in services]
     if len(set(names)) != len(names):
         raise LaunchError(f"{path}: service names must be unique, got {names}")
-    variables = {str(k): str(v) for k, v in data.get("vars", {}).items()}
-    latch = run.get("latch", [])
-    if not isinstance(latch, list) or not all(isinstance(k, str) for k in latch):
-        raise LaunchError(f"{path}: [run] latch must be a list of stream names")
-    report = run.get("report")
-    if report not in (None, "pipeline"):
-        raise LaunchError(f"{path}: [run] report must be \"pipeline\" or absent, got {report!r}")
-    return LaunchFile(Path(path), float(run.get("duration_s", 0)), services, run.get("robot"), variables, latch,
-                      report)
+    raw_vars = data.get("vars", {})
+    if not isinstance(raw_vars, dict):
+        raise LaunchError(f"{path}: vars must be a table ([vars]), got {raw_vars!r}")
+    for k, v in raw_vars.items():
+        if not isinstance(v, (str, int, float)) or isinstance(v, bool):
+            raise LaunchError(f"{path}: [vars] {k} must be a string or a number, got {v!r}")
+    variables = {str(k): str(v) for k, v in raw_vars.items()}
+    return LaunchFile(path, float(run.get("duration_s", 0)), services, run.get("robot"), variables,
+                      list(run.get("latch", [])), run.get("report"))
 
 
 # ----------------------------------------------------------------------------------- children
+
+
+WATCHDOG_GRACE_S = 2.0
+# Run as `python -I -c WATCHDOG_SOURCE <run.json> <grace_s>` with the supervisor writing to its stdin:
+# "+<pgid>" a group to kill if the supervisor dies, "-<pgid>" a group already reaped, "bye" a normal end.
+WATCHDOG_SOURCE = r"""
+import json, os, signal, sys, time
+record, grace = sys.argv[1], float(sys.argv[2])
+groups, normal_end = set(), False
+for line in iter(sys.stdin.buffer.readline, b""):
+    line = line.strip().decode()
+    if line == "bye":
+        normal_end = True
+    elif line[:1] in "+-" and line[1:].isdigit():
+        (groups.add if line[0] == "+" else groups.discard)(int(line[1:]))
+def alive(g):
+    try:
+        os.killpg(g, 0)
+        return True
+    except OSError:
+        return False
+def signal_all(sig):
+    for g in list(groups):
+        try:
+            os.killpg(g, sig)
+        except OSError:
+            groups.discard(g)
+signal_all(signal.SIGTERM)
+deadline = time.monotonic() + grace
+while any(alive(g) for g in groups) and time.monotonic() < deadline:
+    time.sleep(0.05)
+signal_all(signal.SIGKILL)
+if not normal_end:
+    try:
+        with open(record) as f:
+            run = json.load(f)
+        run["state"] = "supervisor-died"
+        run["stop_reason"] = "the supervisor died without stopping its services (SIGKILL?); its watchdog killed them"
+        for s in run.get("services", {}).values():
+            if s.get("state") in ("running", "backoff", "pending"):
+                s["state"] = "killed"
+        with open(record + ".tmp", "w") as f:
+            json.dump(run, f, indent=2)
+        os.replace(record + ".tmp", record)
+    except (OSError, ValueError):
+        pass
+"""
+
+
+class Watchdog:
+    """The process that kills every service's group if the supervisor dies (see the module docstring)."""
+
+    def __init__(self, record: Path, log_path: Path, grace_s: float = WATCHDOG_GRACE_S):
+        with open(log_path, "ab") as logf:
+            self.proc = subprocess.Popen([sys.executable, "-I", "-c", WATCHDOG_SOURCE, str(record), str(grace_s)],
+                                         stdin=subprocess.PIPE, stdout=logf, stderr=subprocess.STDOUT,
+                                         start_new_session=True)
+
+    def _send(self, line: str) -> None:
+        try:
+            self.proc.stdin.write(f"{line}\n".encode())
+            self.proc.stdin.flush()
+        except (BrokenPipeError, ValueError):
+            log.warning("the watchdog has gone: services would outlive a killed supervisor")
+
+    def watch(self, pgid: int) -> None:
+        self._send(f"+{pgid}")
+
+    def forget(self, pgid: int) -> None:
+        self._send(f"-{pgid}")
+
+    def close(self) -> None:
+        self._send("bye")
+        try:
+            self.proc.stdin.close()
+        except (BrokenPipeError, OSError):
+            pass
+        try:
+            self.proc.wait(WATCHDOG_GRACE_S + 5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+def kill_group(pgid: int) -> None:
+    """SIGKILL what is left of a service's process group (its leader has exited)."""
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except OSError:   # nothing left
+        pass
 
 
 def _die_with_parent():
@@ -179,12 +330,15 @@ class Child:
     token_lost_at: float | None = None
     last_heartbeat: dict = field(default_factory=dict)
     reniced: bool = False
+    watchdog: Watchdog | None = None
 
     def start(self, env: dict) -> None:
         with open(self.log_path, "ab") as logf:
             logf.write(f"\n=== start #{self.restarts + 1} at {time.strftime('%H:%M:%S')}: {' '.join(self.argv)}\n".encode())
             self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT, env=env,
                                          preexec_fn=_die_with_parent, cwd=ROOT)
+        if self.watchdog is not None:
+            self.watchdog.watch(self.proc.pid)   # setpgrp in the child: its pgid is its pid
         self.state, self.started_at = "running", time.monotonic()
         self.token_lost_at = None
         self.reniced = False
@@ -195,16 +349,24 @@ class Child:
             renice(self.proc.pid, self.spec.nice)
             self.reniced = True
 
+    def reaped(self) -> None:
+        """The service's process has exited: kill what is left of its group (grandchildren)."""
+        kill_group(self.proc.pid)
+        if self.watchdog is not None:
+            self.watchdog.forget(self.proc.pid)
+
     def terminate(self, timeout: float) -> int | None:
         if self.proc is None or self.proc.poll() is not None:
             return None if self.proc is None else self.proc.returncode
         self.proc.send_signal(signal.SIGTERM)
         try:
-            return self.proc.wait(timeout)
+            rc = self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
             log.warning("%s did not stop within %.0f s, killing it", self.spec.name, timeout)
             self.proc.kill()
-            return self.proc.wait()
+            rc = self.proc.wait()
+        self.reaped()
+        return rc
 
 
 class Supervisor:
@@ -216,6 +378,20 @@ class Supervisor:
         self.stop_reason = ""
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.watchdog: Watchdog | None = None
+        self.state = "starting"
+        self._record_written = 0.0
+
+    @property
+    def record_path(self) -> Path:
+        return self.out / "run.json"
+
+    def write_record(self) -> None:
+        """(Re)write run.json atomically: readable whenever the supervisor dies."""
+        tmp = self.record_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.summary(), indent=2, default=str))
+        os.replace(tmp, self.record_path)
+        self._record_written = time.monotonic()
 
     def _substitute(self, arg: str) -> str:
         base = {"out": self.out, "root": ROOT, "recordings": ROOT / "recordings"}
@@ -236,6 +412,7 @@ class Supervisor:
                   "bus": asdict(self.bus_opts),
                   "services": [{**asdict(c.spec), "argv": c.argv} for c in self.children]}
         (self.out / "run_config.json").write_text(json.dumps(config, indent=2))
+        self.write_record()
 
     # ------------------------------------------------------------------------------- bus watch
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
@@ -289,25 +466,37 @@ class Supervisor:
             self._hold_latched(node, stream)
         env = dict(os.environ, PYTHONUNBUFFERED="1", FLYSLAM_RUN_DIR=str(self.out))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        t_start = time.monotonic()
-        for c in self.children:
-            if self._stop.is_set():
-                break
-            log.info("starting %s", c.spec.name)
-            c.start(env)
-            if c.spec.start_delay_s:
-                self._stop.wait(c.spec.start_delay_s)
-        while not self._stop.wait(0.1):
-            node.progress += 1
-            if self.duration_s and time.monotonic() - t_start >= self.duration_s:
-                self.request_stop(f"duration of {self.duration_s:g} s reached")
-                break
-            self._tick(env)
-        self.shutdown()
+        self.watchdog = Watchdog(self.record_path, self.out / "logs" / "watchdog.log")
+        self.state = "running"
+        try:
+            t_start = time.monotonic()
+            for c in self.children:
+                if self._stop.is_set():
+                    break
+                log.info("starting %s", c.spec.name)
+                c.watchdog = self.watchdog
+                c.start(env)
+                self.write_record()
+                if c.spec.start_delay_s:
+                    self._stop.wait(c.spec.start_delay_s)
+            while not self._stop.wait(0.1):
+                node.progress += 1
+                if self.duration_s and time.monotonic() - t_start >= self.duration_s:
+                    self.request_stop(f"duration of {self.duration_s:g} s reached")
+                    break
+                if self._tick(env) or time.monotonic() - self._record_written > 2.0:
+                    self.write_record()
+        finally:
+            self.shutdown()
+            self.state = "finished"
+            self.write_record()
+            self.watchdog.close()
         return 1 if self.failed_required else 0
 
-    def _tick(self, env: dict) -> None:
+    def _tick(self, env: dict) -> bool:
+        """One supervision step; True when a service changed state (run.json is then rewritten)."""
         now = time.monotonic()
+        changed = False
         for c in self.children:
             if c.state == "running":
                 rc = c.proc.poll()
@@ -315,11 +504,15 @@ class Supervisor:
                     self._check_liveliness(c, now)
                     continue
                 c.exit_codes.append(rc)
+                c.reaped()
                 self._on_exit(c, rc, now)
+                changed = True
             elif c.state == "backoff" and now >= c.next_start:
                 c.restarts += 1
                 log.info("restarting %s (restart %d of %d)", c.spec.name, c.restarts, c.spec.max_restarts)
                 c.start(env)
+                changed = True
+        return changed
 
     def _check_liveliness(self, c: Child, now: float) -> None:
         timeout = c.spec.liveliness_timeout_s
@@ -359,18 +552,25 @@ class Supervisor:
     def shutdown(self) -> None:
         log.info("stopping (%s)", self.stop_reason or "requested")
         for c in reversed(self.children):
-            if c.proc is not None and c.proc.poll() is None:
-                rc = c.terminate(c.spec.stop_timeout_s)
+            if c.proc is not None and c.state == "running":
+                if c.proc.poll() is None:
+                    rc = c.terminate(c.spec.stop_timeout_s)
+                else:   # exited since the last tick
+                    rc = c.proc.returncode
+                    c.reaped()
                 c.exit_codes.append(rc)
                 c.state = "stopped"
             elif c.state in ("backoff", "pending"):
                 c.state = "stopped"
 
     def summary(self) -> dict:
-        return {"stop_reason": self.stop_reason, "failed_required": self.failed_required,
-                "services": {c.spec.name: {"state": c.state, "restarts": c.restarts, "exit_codes": c.exit_codes,
-                                           "log": str(c.log_path), **c.last_heartbeat}
-                             for c in self.children}}
+        with self._lock:
+            services = {c.spec.name: {"state": c.state, "restarts": c.restarts, "exit_codes": list(c.exit_codes),
+                                      "pid": c.proc.pid if c.proc is not None else None,
+                                      "log": str(c.log_path), **c.last_heartbeat}
+                        for c in self.children}
+        return {"state": self.state, "supervisor_pid": os.getpid(), "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "stop_reason": self.stop_reason, "failed_required": self.failed_required, "services": services}
 
 
 def format_summary(summary: dict) -> str:
@@ -432,7 +632,6 @@ def main(argv=None) -> int:
         signal.signal(signal.SIGTERM, on_signal)
         status = sup.run(node)
     summary = sup.summary()
-    (out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
     print(format_summary(summary))
     if launch.report == "pipeline":
         from deploy.report import format_pipeline_summary, pipeline_summary

@@ -1,6 +1,12 @@
-"""Supervisor: restarts a killed child, stops everything on SIGTERM, fails when a required service gives up."""
+"""Supervisor: restarts a killed child, stops everything on SIGTERM, fails when a required service gives up,
+keeps run.json readable and leaves no process behind even when it is SIGKILLed.
+
+Run as a module (``python -m tests.test_supervisor``) this file is a stand-in service that starts one
+grandchild (``sleep``), as the bridge starts its web viewer, and writes the grandchild's pid to the run
+folder."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -87,6 +93,12 @@ def test_killed_child_is_restarted_and_sigterm_leaves_no_child(tmp_path, zenoh_p
         size_after_restart = recording.stat().st_size
         assert wait_until(lambda: recording.stat().st_size > size_after_restart + 20_000, 30), \
             "the pipeline should carry on: the recorder keeps receiving frames from the restarted replay"
+        (recorder_pid,) = [p for p in children_of(sup.pid) if "services.recorder" in cmdline(p)]
+        frames_before_kill = sum(1 for _ in RecordingReader(recording, segments=False).messages())
+        os.kill(recorder_pid, signal.SIGKILL)
+        segment = tmp_path / "run" / "recording.1.mcap"
+        assert wait_until(lambda: segment.exists() and segment.stat().st_size > 20_000, 30), \
+            "a restarted recorder should write a new segment"
         kids = children_of(sup.pid)
         sup.send_signal(signal.SIGTERM)
         out, _ = sup.communicate(timeout=60)
@@ -96,10 +108,16 @@ def test_killed_child_is_restarted_and_sigterm_leaves_no_child(tmp_path, zenoh_p
     assert sup.returncode == 0, out
     assert not [k for k in kids if alive(k)], "children must not outlive the supervisor"
     assert "replay" in out and "restarts" in out
-    reader = RecordingReader(tmp_path / "run" / "recording.mcap")
-    frames = sum(1 for _ in reader.messages())
-    assert reader.error is None, f"the recorder must finalise its file on SIGTERM: {reader.error}"
-    assert frames >= 2   # frames from before and after the restart (the file grew after it)
+    first = RecordingReader(recording, segments=False)
+    assert sum(1 for _ in first.messages()) >= frames_before_kill, "the restart must not overwrite the first segment"
+    last = RecordingReader(segment, segments=False)
+    assert sum(1 for _ in last.messages()) >= 2 and last.error is None, \
+        f"the recorder must finalise its file on SIGTERM: {last.error}"
+    whole = RecordingReader(recording)
+    assert sum(1 for _ in whole.messages()) == sum(1 for _ in first.messages()) + sum(1 for _ in last.messages())
+    record = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert record["state"] == "finished" and record["services"]["recorder"]["restarts"] == 1
+    assert record["services"]["replay"]["restarts"] == 1
 
 
 def test_required_service_giving_up_fails_the_run(tmp_path, zenoh_port):
@@ -122,3 +140,65 @@ def test_bad_launch_file_gives_a_clear_error(tmp_path, zenoh_port):
     sup = start_supervisor(tmp_path, zenoh_port, '[[service]]\nname = "x"\nmodule = "m"\nrestart = "sometimes"\n')
     out, _ = sup.communicate(timeout=30)
     assert sup.returncode == 2 and "restart must be one of" in out and "launch.toml" in out
+
+
+SLEEPERS = """
+[[service]]
+name = "{name}"
+module = "tests.test_supervisor"
+restart = "never"
+required = false
+liveliness_timeout_s = 0
+"""
+
+
+def _grandchild(run: Path, pid: int) -> int | None:
+    f = run / f"grandchild-{pid}"
+    return int(f.read_text()) if f.exists() and f.read_text() else None
+
+
+def test_sigkilled_supervisor_leaves_a_record_and_no_process(tmp_path, zenoh_port):
+    """Children and grandchildren die within seconds of a kill -9 of the supervisor; run.json, written as
+    the run started, says what happened. A service that dies takes its grandchildren with it."""
+    run = tmp_path / "run"
+    sup = start_supervisor(tmp_path, zenoh_port, "".join(SLEEPERS.format(name=n) for n in ("a", "b", "c")))
+    try:
+        def started() -> dict | None:
+            try:
+                record = json.loads((run / "run.json").read_text())
+            except (OSError, ValueError):
+                return None
+            pids = {n: s["pid"] for n, s in record["services"].items() if s["state"] == "running"}
+            return pids if len(pids) == 3 and all(_grandchild(run, p) for p in pids.values()) else None
+        assert wait_until(started, 30), sup.stdout.read() if sup.poll() is not None else "services did not start"
+        pids = started()
+        watchdogs = [p for p in children_of(sup.pid) if "-I -c" in cmdline(p)]
+        assert len(watchdogs) == 1
+        grandchildren = {n: _grandchild(run, p) for n, p in pids.items()}
+        assert all(alive(g) for g in grandchildren.values())
+
+        os.kill(pids["a"], signal.SIGKILL)   # as a SIGKILLed bridge: its viewer must not live on
+        assert wait_until(lambda: not alive(grandchildren["a"]), 5), "a dead service's grandchild survived"
+        assert wait_until(lambda: json.loads((run / "run.json").read_text())["services"]["a"]["state"] == "failed", 5)
+
+        os.kill(sup.pid, signal.SIGKILL)
+        sup.wait(10)
+        everyone = [pids["b"], pids["c"], grandchildren["b"], grandchildren["c"], *watchdogs]
+        assert wait_until(lambda: not any(alive(p) for p in everyone), 6), \
+            f"survivors of the supervisor: {[cmdline(p) for p in everyone if alive(p)]}"
+    finally:
+        if sup.poll() is None:
+            sup.kill()
+        for f in run.glob("grandchild-*"):
+            if (g := _grandchild(run, int(f.name.split("-")[1]))) and alive(g):
+                os.kill(g, signal.SIGKILL)
+    record = json.loads((run / "run.json").read_text())
+    assert record["state"] == "supervisor-died" and "SIGKILL" in record["stop_reason"]
+    assert record["services"]["a"]["state"] == "failed" and record["services"]["b"]["state"] == "killed"
+
+
+if __name__ == "__main__":
+    import time
+    grandchild = subprocess.Popen(["sleep", "600"])
+    (Path(os.environ["FLYSLAM_RUN_DIR"]) / f"grandchild-{os.getpid()}").write_text(str(grandchild.pid))
+    time.sleep(600)
