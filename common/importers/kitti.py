@@ -90,7 +90,8 @@ def load_kitti(path, sequence: str | None = None, max_frames: int | None = None)
     unpaired_left = sorted({p.name for p in lefts} - {p.name for p in rights})
     unpaired_right = sorted({p.name for p in rights} - {p.name for p in lefts})
     if unpaired_left or unpaired_right:
-        have, lack, names = (left_dir, right_dir, unpaired_left) if unpaired_left else (right_dir, left_dir, unpaired_right)
+        have, lack, names = ((left_dir, right_dir, unpaired_left) if unpaired_left
+                             else (right_dir, left_dir, unpaired_right))
         raise DatasetLayoutError(f"KITTI: {lack / names[0]} not found ({len(names)} image(s) of {have} have no pair)")
     if len(stamps) != len(lefts):
         raise DatasetLayoutError(f"KITTI: {seq_dir / 'times.txt'} has {len(stamps)} times for {len(lefts)} images")
