@@ -85,11 +85,16 @@ def _nearest(found: np.ndarray, expected: np.ndarray) -> np.ndarray:
     return out
 
 
-@pytest.fixture(scope="module")
-def rendered():
+def render_rig():
+    """(points in cam0, raw left image, raw right image) of the synthetic fisheye rig."""
     X0 = _points(np.random.default_rng(4))
     X1 = X0 @ T_C1_C0[:3, :3].T + T_C1_C0[:3, 3]
     return X0, _render(X0, K0, D0), _render(X1, K1, D1)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    return render_rig()
 
 
 def test_fisheye_camchain_rectifies_rows_and_recovers_baseline(tmp_path, rendered):

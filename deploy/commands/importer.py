@@ -1,8 +1,27 @@
-"""`flyslam import FORMAT PATH --out FILE.mcap`: convert a public stereo dataset into a recording.
+r"""`flyslam import FORMAT PATH --out FILE.mcap`: convert a public stereo dataset or a ROS bag into a recording.
 
-    flyslam import kitti  /data/kitti/odometry --sequence 05 --out kitti05.mcap
-    flyslam import euroc  /data/euroc/MH_01_easy --out mh01.mcap
-    flyslam import middlebury /data/middlebury/Motorcycle-perfect --scale 0.25 --out moto.mcap
+examples:
+  flyslam import kitti  /data/kitti/odometry --sequence 05 --out kitti05.mcap
+  flyslam import euroc  /data/euroc/MH_01_easy --out mh01.mcap
+  flyslam import middlebury /data/middlebury/Motorcycle-perfect --scale 0.25 --out moto.mcap
+
+  # ROS 2 bag folder (or ROS 1 .bag), calibration from the sibling camera_info topics:
+  flyslam import rosbag ./zed_run --left /zed/left/image_raw --right /zed/right/image_raw --out zed.mcap
+  # EuRoC / TUM-VI bag with its Kalibr camchain (fisheye lenses rectified once; topics from rostopic):
+  flyslam import rosbag dataset-room1_512_16.bag --camchain camchain-imucam.yaml \
+      --truth /vrpn_client/raw_transform --truth-frame imu --out room1.mcap
+  # camera_info on other topics, ground truth from an Odometry topic, looser stereo sync:
+  flyslam import rosbag run.bag --left /cam/left/image_rect --right /cam/right/image_rect \
+      --left-info /cam/left/info --right-info /cam/right/info --truth /odom --sync-tolerance-ms 10 --out run.mcap
+
+rosbag: images are sensor_msgs/Image (mono8, mono16, rgb8, bgr8, rgba8, bgra8) or CompressedImage. Each
+left image is paired with the right image nearest in header stamp, within --sync-tolerance-ms (default
+5 ms); unpaired images are skipped and counted. Calibration comes from --camchain (Kalibr, pinhole with
+equidistant or radtan lenses) or else from the first CameraInfo of each camera (default topic: the
+image topic's sibling camera_info; K, D raw and R, P rectification as in ROS image_proc; *image_rect*
+topics or --rectified: P only). --truth takes PoseStamped, PoseWithCovarianceStamped, TransformStamped
+or Odometry; --truth-frame says whose pose it is (body: a REP-103 body frame at the cameras; optical:
+the left camera; imu: the camchain's IMU via T_cam_imu).
 
 The recording replays like a live source (`flyslam replay`): rectified frames on stereo/frame (PNG by
 default: lossless), the calibration on stereo/calibration and as metadata, ground truth on truth/pose
@@ -21,9 +40,11 @@ from common.importers import FORMATS, DatasetLayoutError, write_recording
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="flyslam import", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n", 2)[2])
+    rosbag_defaults = _rosbag_defaults()
     p.add_argument("format", choices=FORMATS)
     p.add_argument("path", help="dataset folder (KITTI: root with --sequence, or the sequence folder; "
-                                "EuRoC: the folder holding mav0; Middlebury: the scene folder)")
+                                "EuRoC: the folder holding mav0; Middlebury: the scene folder; rosbag: a ROS 1 .bag "
+                                "file or a ROS 2 bag folder)")
     p.add_argument("--out", "-o", required=True, help="MCAP file to write")
     p.add_argument("--sequence", help="KITTI sequence number (with a dataset root)")
     p.add_argument("--max-frames", type=int, default=None, help="import only the first N frames")
@@ -32,7 +53,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robot", default="rig", help="key prefix of the recording (default: rig)")
     p.add_argument("--scale", type=float, default=1.0, help="Middlebury: resize factor in (0, 1]")
     p.add_argument("--repeat", type=int, default=1, help="Middlebury: write the pair N times, 10 Hz")
+    bag = p.add_argument_group("rosbag")
+    bag.add_argument("--left", metavar="TOPIC", help="left image topic (default with --camchain: its cam0 rostopic)")
+    bag.add_argument("--right", metavar="TOPIC", help="right image topic (default with --camchain: its cam1 rostopic)")
+    bag.add_argument("--left-info", metavar="TOPIC", help="left CameraInfo topic (default: <left namespace>/camera_info)")
+    bag.add_argument("--right-info", metavar="TOPIC", help="right CameraInfo topic (default: <right namespace>/camera_info)")
+    bag.add_argument("--camchain", metavar="FILE", help="Kalibr camchain.yaml; overrides the camera_info topics")
+    bag.add_argument("--rectified", action="store_true", help="the images are already rectified: use CameraInfo P only")
+    bag.add_argument("--truth", metavar="TOPIC", help="ground-truth pose topic (PoseStamped, PoseWithCovarianceStamped, "
+                                                      "TransformStamped or Odometry)")
+    bag.add_argument("--truth-frame", choices=rosbag_defaults["truth_frames"], default="body",
+                     help="whose pose --truth gives: body (REP-103, at the cameras; default), optical (left "
+                          "camera), imu (camchain T_cam_imu)")
+    bag.add_argument("--sync-tolerance-ms", type=float, default=rosbag_defaults["sync_ms"],
+                     help="largest left-right header-stamp difference of a pair (default: %(default)g ms)")
     return p
+
+
+def _rosbag_defaults() -> dict:
+    from common.importers.rosbag import DEFAULT_SYNC_TOLERANCE_MS, TRUTH_FRAMES
+    return {"sync_ms": DEFAULT_SYNC_TOLERANCE_MS, "truth_frames": TRUTH_FRAMES}
 
 
 def load(args):
@@ -42,6 +82,12 @@ def load(args):
     if args.format == "euroc":
         from common.importers.euroc import load_euroc
         return load_euroc(args.path, max_frames=args.max_frames)
+    if args.format == "rosbag":
+        from common.importers.rosbag import load_rosbag
+        return load_rosbag(args.path, left=args.left, right=args.right, left_info=args.left_info,
+                           right_info=args.right_info, camchain=args.camchain, truth=args.truth,
+                           truth_frame=args.truth_frame, sync_tolerance_ms=args.sync_tolerance_ms,
+                           rectified=args.rectified, max_frames=args.max_frames)
     from common.importers.middlebury import load_middlebury
     return load_middlebury(args.path, scale=args.scale, repeat=args.repeat)
 
