@@ -2,7 +2,7 @@
 
 Every clip under the data folder (default ``../shared/data`` beside the repository) that has ground truth
 — a KITTI odometry layout with ``poses/NN.txt``, or EuRoC with ``state_groundtruth_estimate0`` — is
-imported once into ``.cache/real/<clip>.mcap`` and run twice in the same process: through
+imported into ``.cache/real/<clip>.mcap`` (again only when an importer changed) and run twice in the same process: through
 ``common.lockstep.run_lockstep`` with no configuration (whatever the defaults are today), and through the
 reference ORB + PnP odometry of ``bench/stereo_vo_reference.py``. Both are scored with
 ``common.trajectory_metrics.evaluate`` (ATE after SE(3) alignment, mean RPE, drift % of path) and frames/s
@@ -68,9 +68,12 @@ def find_clips(data: Path) -> list[Clip]:
 
 
 def cached_recording(clip: Clip) -> Path:
-    """The clip as a flyslam recording, imported on first use (written aside, then renamed into place)."""
+    """The clip as a flyslam recording, imported on first use (written aside, then renamed into place)
+    and again whenever an importer module is newer than the cached recording."""
     path = CACHE / f"{clip.name}.mcap"
-    if not path.is_file():
+    importers = Path(write_recording.__code__.co_filename).parent
+    newest = max(f.stat().st_mtime for f in importers.glob("*.py"))
+    if not path.is_file() or path.stat().st_mtime < newest:
         CACHE.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".partial")
         t = time.perf_counter()
