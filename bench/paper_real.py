@@ -19,7 +19,8 @@ Registrations (identity prior, as in the paper; a window wide enough for a car's
 Every finite estimate counts, reported failures included (as in bench/paper.py). σ and bias are
 pooled over all pairs of frames: σ is the spread of the estimates about their own pair's
 mean (the population-to-population noise the paper's figures show), bias the mean error against the
-truth. Prints a table beside the paper's σ (19 mm, 21 mm, 0.85°); with --json the last stdout line is
+truth. Writes bench/out/paper_real/fig11_13_viewpoint_<k>_<k+1>.png (bench/paper.py's
+scatter panels) per pair of frames. Prints a table beside the paper's σ (19 mm, 21 mm, 0.85°); with --json the last stdout line is
 one JSON object (per variant ``sigma_*``, ``bias_*``, ``rms_*``, failures; ``paper_sigma``; ``load_avg``).
 """
 from __future__ import annotations
@@ -43,12 +44,13 @@ from common.importers import DatasetLayoutError  # noqa: E402
 from common.importers.kitti import load_kitti  # noqa: E402
 from common.registration import PopulationError, StereoModel, register_planar  # noqa: E402
 from common.slam import FlyLocaliser  # noqa: E402
-from paper import AXES, PAPER, optical_params  # noqa: E402
+from paper import AXES, PAPER, figure_scatter, optical_params  # noqa: E402
 
 PAPER_EPS = 0.1
 OPTICAL_WINDOW = (0.5, 1.5, np.deg2rad(12.0))    # x right, z forward, θ
 BODY_WINDOW = (1.5, 0.5, np.deg2rad(12.0))       # x forward, y left, yaw
 SCALE = np.array([1e3, 1e3, np.rad2deg(1.0)])    # (m, m, rad) → (mm, mm, °)
+OUT = ROOT / "bench" / "out" / "paper_real"
 
 
 def evolve(calib, left, right, seed: int, flies: int, generations: int, depth_max: float):
@@ -158,6 +160,10 @@ def main(argv=None) -> int:
             seconds[name] += time.perf_counter() - t
             est[name][k] = np.array([p for p, _ in res])
             oks[name][k] = np.array([o for _, o in res])
+        OUT.mkdir(parents=True, exist_ok=True)
+        figure_scatter(str(OUT / f"fig11_13_viewpoint_{k}_{k + 1}.png"),
+                       [(name, est[name][k], oks[name][k]) for name in ("stereo_all", "paper_delta", "localiser")],
+                       truth[k], f"frames {k} -> {k + 1}: {args.populations ** 2} registrations", half=500.0)
     load = os.getloadavg()
     out = {"clip": args.clip, "frame_pairs": [[k, k + 1] for k in frames], "populations_per_frame": args.populations,
            "generations": args.generations, "flies": args.flies,
