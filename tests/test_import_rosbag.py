@@ -255,6 +255,36 @@ def test_fisheye_bag_with_a_kalibr_camchain(tmp_path):
     assert len(rows_l) == len(rows_r) and np.abs(rows_l - rows_r).max() < 0.5
 
 
+def test_equidistant_camera_info_goes_through_the_fisheye_model(tmp_path):
+    """A ROS driver's fisheye CameraInfo (distortion_model equidistant, R and P from a stereo calibration)."""
+    X0, raw_left, raw_right = fisheye.render_rig()
+    size = (fisheye.W, fisheye.H)
+    R, T = fisheye.T_C1_C0[:3, :3].copy(), fisheye.T_C1_C0[:3, 3].reshape(3, 1).copy()
+    R1, R2, _, P2cv, _ = cv2.fisheye.stereoRectify(fisheye.K0, fisheye.D0.reshape(4, 1), fisheye.K1,
+                                                   fisheye.D1.reshape(4, 1), size, R, T,
+                                                   flags=cv2.CALIB_ZERO_DISPARITY, newImageSize=size)
+    f, c = 190.0, (fisheye.W - 1) / 2
+    P1 = np.array([[f, 0, c, 0], [0, f, c, 0], [0, 0, 1, 0]])
+    P2 = P1.copy()
+    P2[0, 3] = f * P2cv[0, 3] / P2cv[0, 0]
+    path = tmp_path / "t265"
+    with Bag(path, 2) as bag:
+        bag.camera_info("/t265/fisheye1/camera_info", P1, size, T0, K=fisheye.K0, D=fisheye.D0, R=R1, model="equidistant")
+        bag.camera_info("/t265/fisheye2/camera_info", P2, size, T0, K=fisheye.K1, D=fisheye.D1, R=R2, model="equidistant")
+        bag.image("/t265/fisheye1/image_raw", raw_left, T0)
+        bag.image("/t265/fisheye2/image_raw", raw_right, T0)
+    ds = load_rosbag(path, "/t265/fisheye1/image_raw", "/t265/fisheye2/image_raw")
+    assert ds.calibration.fx == f and ds.calibration.baseline == pytest.approx(np.linalg.norm(T), rel=1e-6)
+    np.testing.assert_array_equal(ds.calibration.D_left, 0)  # describes the rectified images (see kalibr)
+    left, right = ds.load_pair(0)
+    u_l, u_r, v = ds.calibration.project(X0 @ R1.T)  # where the rectified model puts the points
+    found_l = fisheye._nearest(fisheye._centroids(left), np.stack([u_l, v], 1))
+    found_r = fisheye._nearest(fisheye._centroids(right), np.stack([u_r, v], 1))
+    assert np.isfinite(found_l).all() and np.isfinite(found_r).all()
+    assert np.abs(found_l[:, 1] - found_r[:, 1]).max() < 0.5
+    assert np.abs(found_l - np.stack([u_l, v], 1)).max() < 0.5
+
+
 def test_pairing_takes_the_nearest_partner_once():
     li, ri = pair_by_stamp(np.array([0, 100, 200, 300]), np.array([2, 98, 104, 260, 299]), tolerance_ns=5)
     assert li.tolist() == [0, 1, 3] and ri.tolist() == [0, 1, 4]  # 100↔98 (not 104), 200 has none within 5

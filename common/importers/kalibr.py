@@ -88,11 +88,16 @@ def rectify_pair(lens: str, K1, D1, K2, D2, size: tuple[int, int], R, T,
                      ((calib.K_left, calib.D_left, calib.R_left, calib.P_left),
                       (calib.K_right, calib.D_right, calib.R_right, calib.P_right)))
         return RectifiedRig(calib, maps, np.asarray(calib.R_left, float), tuple(size), lens)
-    K1, K2 = np.asarray(K1, float).reshape(3, 3), np.asarray(K2, float).reshape(3, 3)
-    D1, D2 = np.asarray(D1, float).reshape(4, 1), np.asarray(D2, float).reshape(4, 1)
-    R, T = np.array(R, float).reshape(3, 3), np.array(T, float).reshape(3, 1)  # contiguous copies for OpenCV
-    R1, R2, P1, P2, _Q = cv2.fisheye.stereoRectify(K1, D1, K2, D2, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY,
-                                                   newImageSize=size)
+    raw = RawStereoRig(size[0], size[1], K1, D1, K2, D2, R, T, T_base)  # validates K, D, R, T
+    if raw.D1.size != 4 or raw.D2.size != 4:
+        raise CalibrationError("an equidistant lens has 4 coefficients k1..k4")
+    K1, K2, D1, D2 = raw.K1, raw.K2, raw.D1.reshape(4, 1), raw.D2.reshape(4, 1)
+    R, T = raw.R.copy(), raw.T.reshape(3, 1).copy()  # contiguous for OpenCV
+    try:
+        R1, R2, P1, P2, _Q = cv2.fisheye.stereoRectify(K1, D1, K2, D2, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY,
+                                                       newImageSize=size)
+    except cv2.error as e:
+        raise CalibrationError(f"fisheye stereo rectification failed: {str(e).strip().splitlines()[-1]}") from None
     # OpenCV's choice of focal length and centre follows the undistorted image edges, which at 75°+ off
     # axis swing with the slightest rotation; the raw focal length at the image centre does not.
     f, (cx, cy) = float(np.mean([K1[0, 0], K1[1, 1], K2[0, 0], K2[1, 1]])), ((size[0] - 1) / 2, (size[1] - 1) / 2)

@@ -149,19 +149,18 @@ class _PairCursor:
         self.wanted = ({int(i): k for k, i in enumerate(li)}, {int(i): k for k, i in enumerate(ri)})
         self.stash: dict[tuple[int, int], tuple[object, str]] = {}
         self.reader = self.messages = None
+        self.sides: dict[tuple[int, int], int] = {}
+        self.counts = [0, 0]
 
     def _open(self):
         from rosbags.highlevel import AnyReader
         self.reader = AnyReader([self.path], default_typestore=self.typestore)
         self.reader.open()
-        by_id = {}
-        for side, topic in enumerate(self.topics):
-            for c in self.reader.connections:
-                if c.topic == topic.name:
-                    by_id[c.id, id(c.owner)] = side
-        self.sides = by_id
+        names = [t.name for t in self.topics]
+        conns = [c for c in self.reader.connections if c.topic in names]
+        self.sides = {(c.id, id(c.owner)): names.index(c.topic) for c in conns}
         self.counts = [0, 0]
-        self.messages = self.reader.messages(connections=[c for c in self.reader.connections if (c.id, id(c.owner)) in by_id])
+        self.messages = self.reader.messages(connections=conns)
 
     def close(self):
         if self.reader is not None:
@@ -169,7 +168,15 @@ class _PairCursor:
         self.reader = self.messages = None
 
     def get(self, k: int):
-        """The (left, right) deserialised messages of pair k."""
+        """The (left, right) deserialised messages (with their types) of pair k."""
+        from rosbags.highlevel import AnyReaderError
+        try:
+            return self._get(k)
+        except AnyReaderError as e:
+            self.close()
+            raise DatasetLayoutError(f"ROS bag: {self.path}: {e}") from None
+
+    def _get(self, k: int):
         if self.reader is None:
             self._open()
         while (0, k) not in self.stash or (1, k) not in self.stash:
@@ -189,16 +196,18 @@ class _PairCursor:
 
 def _info_arrays(msg) -> dict:
     """CameraInfo fields as arrays, for ROS 1 (D, K, R, P) and ROS 2 (d, k, r, p) naming alike."""
-    get = lambda name: np.asarray(getattr(msg, name.lower(), None) if hasattr(msg, name.lower())  # noqa: E731
-                                  else getattr(msg, name), np.float64)
+    def get(name: str) -> np.ndarray:
+        return np.asarray(getattr(msg, name.lower()) if hasattr(msg, name.lower()) else getattr(msg, name), np.float64)
+
     return dict(K=get("K").reshape(3, 3), D=get("D").ravel(), R=get("R").reshape(3, 3), P=get("P").reshape(3, 4),
                 size=(int(msg.width), int(msg.height)), model=str(msg.distortion_model).lower(),
                 binning=(int(msg.binning_x), int(msg.binning_y)))
 
 
 def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right_topic: str,
-                                 rectified: bool) -> tuple[StereoCalibration, object, np.ndarray]:
-    """(calibration, rectify(left, right) callable, raw-to-rectified rotation of the left camera)."""
+                                 rectified: bool) -> tuple[StereoCalibration, object, np.ndarray, str]:
+    """(calibration, rectify(left, right) callable, raw-to-rectified rotation of the left camera, how the
+    images are treated, in words)."""
     for info, topic in ((left, left_topic), (right, right_topic)):
         if not np.any(info["P"]):
             raise DatasetLayoutError(f"ROS bag: {topic}: CameraInfo has no projection P (camera not calibrated)")
@@ -238,8 +247,12 @@ def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right
         raise DatasetLayoutError(f"ROS bag: {left_topic}/{right_topic} CameraInfo: {e}") from None
     if fisheye:
         maps = tuple(lens_maps("equidistant", i["K"], i["D"][:4], i["R"], i["P"], i["size"]) for i in (left, right))
-        return calib, RectifiedRig(calib, maps, left["R"], left["size"], "equidistant").rectify, left["R"]
-    return calib, StereoRectifier(calib).rectify, (left["R"] if keep_raw else np.eye(3))
+        rig = RectifiedRig(calib, maps, left["R"], left["size"], "equidistant")
+        return calib, rig.rectify, left["R"], "equidistant lenses, rectified on import"
+    rectifier = StereoRectifier(calib)
+    how = ("images already rectified: P only" if rectified else
+           "D = 0, R = I, K = P: images used as they are" if rectifier.passthrough else "rectified on import")
+    return calib, rectifier.rectify, (left["R"] if keep_raw else np.eye(3)), how
 
 
 def _opencv_distortion(D: np.ndarray, topic: str) -> np.ndarray:
@@ -363,9 +376,9 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
     else:
         infos_l, infos_r = (_info_arrays(first_info[i.name]) for i in infos)
         rectified = rectified or ("image_rect" in left and "image_rect" in right)
-        calib, rectify, rotation_left = calibration_from_camera_info(infos_l, infos_r, left_info, right_info, rectified)
-        notes.append(f"calibration from {left_info} and {right_info}"
-                     + (" (images already rectified: P only)" if rectified else " (rectified on import)"))
+        calib, rectify, rotation_left, how = calibration_from_camera_info(infos_l, infos_r, left_info, right_info,
+                                                                          rectified)
+        notes.append(f"calibration from {left_info} and {right_info} ({how})")
 
     stamps_l, stamps_r = np.array(cam_l.stamps, np.int64), np.array(cam_r.stamps, np.int64)
     li, ri = pair_by_stamp(stamps_l, stamps_r, int(round(sync_tolerance_ms * 1e6)))
