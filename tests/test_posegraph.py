@@ -233,3 +233,36 @@ def test_bad_input_is_a_one_line_pose_graph_error():
     with pytest.raises(PoseGraphError, match="no prior"):
         g.optimise()
     assert isinstance(PoseGraphError("x"), ValueError)
+
+
+@pytest.mark.parametrize("robust", [True, False])
+def test_marginal_covariance_is_consistent_with_the_error_it_describes(robust):
+    """NEES of the last keyframe of a chain (each keyframe registered against the two before it, the
+    measurements drawn from their covariances) is within a factor 2 of its 6 degrees of freedom; the
+    kernel's inlier weights (< 1) make it slightly pessimistic, never over-confident."""
+    import gtsam
+    rng = np.random.default_rng(5)
+    cov = np.diag([0.05, 0.05, 0.02, 0.01, 0.01, 0.02]) ** 2
+    chol = np.linalg.cholesky(cov)
+    truth = [np.eye(4)]
+    for _ in range(8):
+        truth.append(truth[-1] @ make_transform(so3_exp([0, 0, 0.2]), [1.5, 0, 0]))
+    nees = []
+    for _ in range(100):
+        g = PoseGraph()
+        for i, T in enumerate(truth):
+            g.add_keyframe(i, T)
+        g.add_prior(0, truth[0], np.eye(6) * 1e-8)
+        for j in range(1, len(truth)):
+            for i in (j - 1, j - 2):
+                if i >= 0:
+                    d = chol @ rng.normal(size=6)                      # flyslam order, right perturbation
+                    measured = invert(truth[i]) @ truth[j] @ gtsam.Pose3.Expmap(np.r_[d[3:], d[:3]]).matrix()
+                    g.add_registration(i, j, measured, cov, robust=robust)
+        g.optimise()
+        k = len(truth) - 1
+        e = gtsam.Pose3.Logmap(gtsam.Pose3(invert(truth[k]) @ g.pose(k)))
+        e = np.r_[e[3:], e[:3]]
+        nees.append(e @ np.linalg.solve(g.marginal_covariance(k), e))
+    assert 3.0 <= np.mean(nees) <= 12.0
+    assert np.mean(nees) <= 6.0 * 1.25               # not over-confident

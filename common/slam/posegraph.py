@@ -10,7 +10,8 @@ pose's own base_link (for a relative measurement: in keyframe j's frame).  For a
 errors, rz is the yaw error and rx, ry roll and pitch about the body axes.  GTSAM's Pose3 tangent is the
 same right perturbation with the blocks swapped, (rx, ry, rz, x, y, z); this module converts at the
 boundary and nowhere else.  :meth:`PoseGraph.marginal_covariance` can also rotate the result into the
-map's axes (``frame="map"``: position error along map x, y, z, rotation error about map axes).
+map's axes (``frame="map"``: position error along map x, y, z, rotation error about map axes).  Marginals
+come from the kernel-weighted information: an inlier's weight below 1 makes them slightly pessimistic.
 
 Robust kernels act on the Mahalanobis norm of a factor's whole 6-D residual (GTSAM's block reweighting):
 ``k`` is in standard deviations.  Cauchy (default) leaves a far outlier a pull of ≈ k²/r (r its
