@@ -15,6 +15,12 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ deploy/constraints.
   .venv/bin/python -m pip install -q -c deploy/constraints.txt -e '.[test]'
   touch "$stamp"
 fi
+# Compile every numba kernel now (kept in numba's on-disk cache, see common/numba_cache.py), so no run
+# pays for it; after a source change only the changed kernels compile again.
+echo "[setup] compiling the numba kernels (minutes the first time, seconds after)" >&2
+if ! .venv/bin/python -m common.warmup; then
+  echo "[setup] warning: the kernels named above will compile during a run" >&2
+fi
 # Rerun's usage analytics stay off on every flyslam machine.
 .venv/bin/rerun analytics disable >/dev/null 2>&1 || true
 echo "[setup] ready: .venv/bin/flyslam" >&2

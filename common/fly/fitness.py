@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from common.camera import CalibrationError, StereoCalibration
+from common.numba_cache import cache_twin
 
 OUTSIDE_FITNESS = np.float32(-np.inf)
 
@@ -375,7 +376,7 @@ def _fitness_kernel_py(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, su
 # shared with other busy processes a parallel region can stall for a scheduler time slice (milliseconds)
 # waiting for a descheduled worker, so modest batches are better evaluated serially.
 _fitness_kernel_parallel = numba.njit(parallel=True, cache=True, fastmath=True)(_fitness_kernel_py)
-_fitness_kernel_serial = numba.njit(parallel=False, cache=True, fastmath=True)(_fitness_kernel_py)
+_fitness_kernel_serial = numba.njit(parallel=False, cache=True, fastmath=True)(cache_twin(_fitness_kernel_py, "serial"))
 
 
 def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.ndarray,
