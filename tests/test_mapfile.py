@@ -65,7 +65,7 @@ def test_saved_pose_graph_rebuilds_the_same_trajectory(tmp_path):
     g.optimise()
     pts = np.zeros((4, 3), np.float32)
     kfs = [Keyframe(i, i, T, pts, np.ones(4, np.float32)) for i, T in g.poses().items()]
-    save_map(tmp_path / "map.mcap", kfs, g.edges().values())
+    save_map(tmp_path / "map.mcap", kfs, g.edges())          # the dict PoseGraph.edges() returns
     data = load_map(tmp_path / "map.mcap")
     h = PoseGraph(planar=True)
     for kf in data.keyframes:
@@ -135,6 +135,7 @@ def test_bad_input_to_save_is_an_error_and_keeps_the_previous_map(tmp_path):
         (kfs + kfs[:1], edges),                                               # duplicate id
         (kfs, edges + [MapEdge(0, 999, np.eye(4), np.eye(6), "odometry")]),   # unknown keyframe
         (kfs, [MapEdge(kfs[0].id, kfs[1].id, np.eye(4), np.eye(6), "gps")]),  # unknown kind
+        (kfs, [(0, 1)]),                                                      # not an edge
     ]
     for k, e in cases:
         with pytest.raises(MapFileError):

@@ -266,3 +266,23 @@ def test_marginal_covariance_is_consistent_with_the_error_it_describes(robust):
         nees.append(e @ np.linalg.solve(g.marginal_covariance(k), e))
     assert 3.0 <= np.mean(nees) <= 12.0
     assert np.mean(nees) <= 6.0 * 1.25               # not over-confident
+
+
+@pytest.mark.parametrize("batch", [False, True])
+def test_a_keyframe_that_loses_its_last_factor_keeps_its_pose_until_a_new_one_comes(batch):
+    g = PoseGraph()
+    g.add_keyframe(0, np.eye(4))
+    g.add_keyframe(1, planar_pose(1.0, 0.0, 0.0))
+    g.add_prior(0, np.eye(4), PRIOR_COV)
+    h = g.add_registration(0, 1, planar_pose(1.2, 0.0, 0.0), REG_COV)
+    g.optimise(batch=batch)
+    g.remove_factor(h)
+    g.optimise(batch=batch)
+    np.testing.assert_allclose(g.pose(1)[:3, 3], [1.2, 0.0, 0.0], atol=1e-9)
+    assert g.edges().keys() == {0}
+    with pytest.raises(PoseGraphError, match="no marginal"):
+        g.marginal_covariance(1)
+    g.add_registration(0, 1, planar_pose(2.0, 0.0, 0.0), REG_COV)
+    g.optimise(batch=batch)
+    np.testing.assert_allclose(g.pose(1)[:3, 3], [2.0, 0.0, 0.0], atol=1e-6)
+    assert g.marginal_covariance(1)[0, 0] == pytest.approx(REG_COV[0, 0] + PRIOR_COV[0, 0], rel=0.05)

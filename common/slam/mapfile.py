@@ -120,7 +120,14 @@ def save_map(path: str | Path, keyframes, edges, meta: dict | None = None) -> Pa
     i, j, T_i_j, cov, kind and optionally robust (common.slam.posegraph.Edge or MapEdge), each naming
     keyframes of the map; ``meta``: JSON-serialisable (e.g. the localiser's configuration)."""
     path = Path(path)
-    keyframes, edges = list(keyframes), list(edges)
+    keyframes = list(keyframes)
+    edges = list(edges.values() if isinstance(edges, dict) else edges)   # PoseGraph.edges() is a dict
+    for what, items, fields in (("keyframe", keyframes, ("id", "stamp_ns", "T_map_base", "points", "fitness")),
+                                ("edge", edges, ("i", "j", "T_i_j", "cov", "kind"))):
+        for item in items:
+            missing = [f for f in fields if not hasattr(item, f)]
+            if missing:
+                raise MapFileError(f"{path}: a {what} without {', '.join(missing)} ({type(item).__name__})")
     ids = [int(kf.id) for kf in keyframes]
     if len(set(ids)) != len(ids):
         raise MapFileError(f"{path}: duplicate keyframe ids")

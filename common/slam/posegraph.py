@@ -297,8 +297,18 @@ class PoseGraph:
                 error = new_error
         except RuntimeError as e:        # GTSAM's IndeterminantLinearSystem and friends
             raise PoseGraphError(f"pose graph cannot be solved: {_first_line(e)}") from None
-        self._estimate = self._isam.calculateEstimate()
+        self._set_estimate(self._isam.calculateEstimate())
         return error
+
+    def _set_estimate(self, estimate: gtsam.Values) -> None:
+        """Adopt iSAM2's estimate.  iSAM2 drops a keyframe whose last factor was removed: it keeps its
+        last pose and waits, like a new keyframe, for a factor to bring it back."""
+        for k in list(self._in_solver):
+            if not estimate.exists(self._key(k)):
+                if self._estimate is not None and self._estimate.exists(self._key(k)):
+                    self._initial[k] = self._estimate.atPose3(self._key(k)).matrix()
+                self._in_solver.discard(k)
+        self._estimate = estimate
 
     def _isam_error(self) -> float:
         return float(self._isam.getFactorsUnsafe().error(self._isam.calculateEstimate()))
@@ -321,8 +331,11 @@ class PoseGraph:
             raise PoseGraphError(f"pose graph cannot be solved: {_first_line(e)}") from None
         self._solver_index = {t: int(i) for t, i in zip(tags, result.getNewFactorsIndices())}
         self._pending, self._removed_indices = [], []
+        for k in self._in_solver - used:           # lost its last factor: keeps its last pose
+            self._initial[k] = self._current_pose(k).matrix()
         self._in_solver = used
-        self._estimate = self._isam.calculateEstimate()
+        self._estimate = None
+        self._set_estimate(self._isam.calculateEstimate())
         return float(graph.error(self._estimate))
 
     # ------------------------------------------------------------------------------- reading
@@ -353,7 +366,8 @@ class PoseGraph:
         if frame not in ("base", "map"):
             raise PoseGraphError(f"frame {frame!r}: expected 'base' or 'map'")
         if kf_id not in self._in_solver or self._pending:
-            raise PoseGraphError(f"keyframe {kf_id}: optimise() first (it or some factor is not in the solver)")
+            raise PoseGraphError(f"keyframe {kf_id}: no marginal until optimise() has taken in every factor "
+                                 f"and some factor constrains this keyframe")
         try:
             cov = to_gtsam_cov(self._isam.marginalCovariance(self._key(kf_id)))
         except RuntimeError as e:
