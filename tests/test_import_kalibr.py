@@ -2,7 +2,9 @@
 
 Known 3-D points are drawn as small blobs into the two raw fisheye images (cv2.fisheye.projectPoints);
 after rectification the blobs of one point must sit on the same row in both images and where the
-rectified calibration (focal length, baseline) says they should.
+rectified calibration (focal length, baseline) says they should. The same rig as a TUM-VI EuRoC-format
+folder (`flyslam import euroc --camchain`) must give rectified frames and the IMU's mocap truth as
+base_link motion.
 """
 from __future__ import annotations
 
@@ -11,9 +13,14 @@ import numpy as np
 import pytest
 
 from common.camera import CalibrationError
-from common.geometry import make_transform, rot_x, rot_y, rot_z
+from common.geometry import invert, make_transform, quat_from_matrix, rot_x, rot_y, rot_z
+from common.images import frame_images
 from common.importers.base import DatasetLayoutError
+from common.importers.euroc import load_euroc
 from common.importers.kalibr import load_camchain, read_camchain, rectify_pair
+from common.messages import StereoCalibrationMsg, calibration_from_msg, decode, transform_of
+from common.recording import RecordingReader
+from deploy.commands import importer
 
 W = H = 512
 K0 = np.array([[190.98, 0, 254.93], [0, 190.97, 256.90], [0, 0, 1]])
@@ -154,3 +161,63 @@ def test_bad_camchain_names_the_key(tmp_path, kwargs, message):
 def test_missing_camchain_names_the_file(tmp_path):
     with pytest.raises(DatasetLayoutError, match="camchain.yaml not found"):
         read_camchain(tmp_path / "camchain.yaml")
+
+
+T_CAM_IMU = make_transform(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]), [0.047, -0.047, -0.068])
+
+
+def _tumvi_folder(root, rig_rotation_left, stamps, speed):
+    """A TUM-VI-like EuRoC-format folder: fisheye cam0/cam1 images and mocap0 (the IMU's pose), no sensor.yaml."""
+    _, raw_left, raw_right = render_rig()
+    for cam, img in (("cam0", raw_left), ("cam1", raw_right)):
+        (root / "mav0" / cam / "data").mkdir(parents=True)
+        rows = ["#timestamp [ns],filename"]
+        for t in stamps:
+            cv2.imwrite(str(root / "mav0" / cam / "data" / f"{t}.png"), img)
+            rows.append(f"{t},{t}.png")
+        (root / "mav0" / cam / "data.csv").write_text("\n".join(rows) + "\n")
+    # The rectified left camera moves along its optical axis at `speed`: T_R_rect(t) = Tz(speed·t).
+    T_imu_rect = invert(T_CAM_IMU) @ make_transform(np.asarray(rig_rotation_left).T)
+    rows = ["#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"]
+    for t in range(stamps[0], stamps[-1] + 1, 5_000_000):
+        T_R_S = make_transform(np.eye(3), [0, 0, speed * (t - stamps[0]) * 1e-9]) @ invert(T_imu_rect)
+        x, y, z, w = quat_from_matrix(T_R_S[:3, :3])
+        rows.append(",".join(str(v) for v in (t, *T_R_S[:3, 3], w, x, y, z)))
+    (root / "mav0" / "mocap0").mkdir()
+    (root / "mav0" / "mocap0" / "data.csv").write_text("\n".join(rows) + "\n")
+
+
+def test_euroc_folder_with_a_fisheye_camchain(tmp_path, capsys):
+    camchain = _camchain(tmp_path / "camchain.yaml")
+    text = camchain.read_text().replace(_rows(np.eye(4)), _rows(T_CAM_IMU), 1)  # cam0's T_cam_imu
+    camchain.write_text(text)
+    rig, _ = load_camchain(camchain)
+    stamps = [1520530308199447626 + k * 50_000_000 for k in range(3)]
+    _tumvi_folder(tmp_path / "room1", rig.rotation_left, stamps, speed=1.5)
+    out = tmp_path / "room1.mcap"
+    assert importer.main(["euroc", str(tmp_path / "room1"), "--camchain", str(camchain), "--out", str(out)]) == 0, \
+        capsys.readouterr().err
+    reader = RecordingReader(out)
+    msgs = {}
+    for m in reader.messages():
+        msgs.setdefault(m.key, []).append(decode(m.payload))
+    calib = calibration_from_msg(decode(reader.calibration_payload(), StereoCalibrationMsg))
+    assert calib.fx == pytest.approx(K0[0, 0], rel=0.01) and calib.baseline == pytest.approx(BASELINE, rel=0.01)
+    frames = msgs["rig/stereo/frame"]
+    assert [f.header.stamp_ns for f in frames] == stamps
+    left, right = frame_images(frames[0])
+    rows_l, rows_r = np.sort(_centroids(left)[:, 1]), np.sort(_centroids(right)[:, 1])
+    assert len(rows_l) == len(rows_r) == 49 and np.abs(rows_l - rows_r).max() < 0.5
+    poses = np.array([transform_of(p) for p in msgs["rig/truth/pose"]])
+    assert len(poses) == 21  # 200 Hz over the 0.1 s of frames
+    np.testing.assert_allclose(poses[-1][:3, 3], [1.5 * 0.1, 0, 0], atol=1e-6)  # base_link forward = map +x
+    np.testing.assert_allclose(poses[-1][:3, :3], np.eye(3), atol=1e-6)
+
+
+def test_euroc_camchain_without_imu_extrinsics_skips_the_truth(tmp_path):
+    camchain = _camchain(tmp_path / "camchain.yaml")
+    camchain.write_text(camchain.read_text().replace("  T_cam_imu:\n" + _rows(np.eye(4)) + "\n", ""))
+    rig, _ = load_camchain(camchain)
+    _tumvi_folder(tmp_path / "room1", rig.rotation_left, [10**18, 10**18 + 50_000_000], speed=1.0)
+    ds = load_euroc(tmp_path / "room1", camchain=camchain)
+    assert len(ds.truth_poses) == 0 and any("no T_cam_imu" in n for n in ds.notes)

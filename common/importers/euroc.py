@@ -102,21 +102,31 @@ def poses_from_wxyz(positions: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
     return T
 
 
-def load_euroc(path, max_frames: int | None = None) -> StereoDataset:
-    """An EuRoC MAV sequence; ``path`` is the folder holding ``mav0`` (or ``mav0`` itself)."""
+def load_euroc(path, max_frames: int | None = None, camchain=None) -> StereoDataset:
+    """An EuRoC MAV sequence; ``path`` is the folder holding ``mav0`` (or ``mav0`` itself).
+
+    ``camchain``: a Kalibr camchain.yaml used instead of the sensor.yaml files (fisheye lenses, as in
+    TUM-VI's EuRoC-format export; see common.importers.kalibr), T_BS = T_cam_imu⁻¹."""
     path = Path(path)
     require(path, "EuRoC")
     mav = path if path.name == "mav0" and not (path / "mav0").is_dir() else path / "mav0"
     cam0, cam1 = require(mav / "cam0", "EuRoC"), require(mav / "cam1", "EuRoC")
-    s0, s1 = read_sensor_yaml(cam0 / "sensor.yaml"), read_sensor_yaml(cam1 / "sensor.yaml")
-    if s0["size"] != s1["size"]:
-        raise DatasetLayoutError(f"EuRoC: cam0 is {s0['size']} but cam1 is {s1['size']}")
-    T_c1_c0 = invert(s1["T_BS"]) @ s0["T_BS"]
-    try:
-        calib = rectify_rig(RawStereoRig(*s0["size"], s0["K"], s0["D"], s1["K"], s1["D"],
-                                         T_c1_c0[:3, :3], T_c1_c0[:3, 3]))
-    except CalibrationError as e:
-        raise DatasetLayoutError(f"EuRoC: {mav}: {e}") from None
+    if camchain is not None:
+        from common.importers.kalibr import load_camchain
+        rig, cams = load_camchain(camchain)
+        calib, rectifier, R_left = rig.calibration, rig, rig.rotation_left
+        T_BS0 = None if cams["cam0"].T_cam_imu is None else invert(cams["cam0"].T_cam_imu)
+    else:
+        s0, s1 = read_sensor_yaml(cam0 / "sensor.yaml"), read_sensor_yaml(cam1 / "sensor.yaml")
+        if s0["size"] != s1["size"]:
+            raise DatasetLayoutError(f"EuRoC: cam0 is {s0['size']} but cam1 is {s1['size']}")
+        T_c1_c0 = invert(s1["T_BS"]) @ s0["T_BS"]
+        try:
+            calib = rectify_rig(RawStereoRig(*s0["size"], s0["K"], s0["D"], s1["K"], s1["D"],
+                                             T_c1_c0[:3, :3], T_c1_c0[:3, 3]))
+        except CalibrationError as e:
+            raise DatasetLayoutError(f"EuRoC: {mav}: {e}") from None
+        rectifier, R_left, T_BS0 = StereoRectifier(calib), calib.R_left, s0["T_BS"]
     rows0, rows1 = read_camera_csv(cam0 / "data.csv"), read_camera_csv(cam1 / "data.csv")
     paired = sorted(set(rows0) & set(rows1))
     if not paired:
@@ -127,7 +137,6 @@ def load_euroc(path, max_frames: int | None = None) -> StereoDataset:
         notes.append(f"{unpaired} images without a partner of the same timestamp skipped")
     n = len(paired) if max_frames is None else min(len(paired), int(max_frames))
     stamps = np.array(paired[:n], np.int64)
-    rectifier = StereoRectifier(calib)
 
     def read(folder: Path, name: str) -> np.ndarray:
         p = folder / "data" / name
@@ -142,12 +151,16 @@ def load_euroc(path, max_frames: int | None = None) -> StereoDataset:
 
     truth_stamps, truth = np.zeros(0, np.int64), np.zeros((0, 4, 4))
     gt_file = mav / "state_groundtruth_estimate0" / "data.csv"
-    if gt_file.is_file():
+    if not gt_file.is_file() and (mav / "mocap0" / "data.csv").is_file():  # TUM-VI: the IMU's pose, same columns
+        gt_file = mav / "mocap0" / "data.csv"
+    if gt_file.is_file() and T_BS0 is None:
+        notes.append(f"ground truth {gt_file} skipped: the camchain has no T_cam_imu for cam0")
+    elif gt_file.is_file():
         gt_stamps, T_R_S = read_groundtruth(gt_file)
         keep = (gt_stamps >= stamps[0]) & (gt_stamps <= stamps[-1])
         if len(gt_stamps) and keep.any():
-            T_cam0_rect = make_transform(np.asarray(calib.R_left).T)
-            T_R_rect = T_R_S @ s0["T_BS"] @ T_cam0_rect
+            T_cam0_rect = make_transform(np.asarray(R_left).T)
+            T_R_rect = T_R_S @ T_BS0 @ T_cam0_rect
             ref = T_R_rect[int(np.argmin(np.abs(gt_stamps - stamps[0])))]
             truth_stamps, truth = gt_stamps[keep], map_poses_from_camera(T_R_rect[keep], reference=ref)
         else:

@@ -3,6 +3,7 @@ r"""`flyslam import FORMAT PATH --out FILE.mcap`: convert a public stereo datase
 examples:
   flyslam import kitti  /data/kitti/odometry --sequence 05 --out kitti05.mcap
   flyslam import euroc  /data/euroc/MH_01_easy --out mh01.mcap
+  flyslam import euroc  /data/tumvi/dataset-room1_512_16 --camchain dso/camchain.yaml --out room1.mcap
   flyslam import middlebury /data/middlebury/Motorcycle-perfect --scale 0.25 --out moto.mcap
 
   # ROS 2 bag folder (or ROS 1 .bag), calibration from the sibling camera_info topics:
@@ -53,12 +54,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robot", default="rig", help="key prefix of the recording (default: rig)")
     p.add_argument("--scale", type=float, default=1.0, help="Middlebury: resize factor in (0, 1]")
     p.add_argument("--repeat", type=int, default=1, help="Middlebury: write the pair N times, 10 Hz")
-    bag = p.add_argument_group("rosbag")
+    bag = p.add_argument_group("rosbag (and --camchain for euroc)")
     bag.add_argument("--left", metavar="TOPIC", help="left image topic (default with --camchain: its cam0 rostopic)")
     bag.add_argument("--right", metavar="TOPIC", help="right image topic (default with --camchain: its cam1 rostopic)")
     bag.add_argument("--left-info", metavar="TOPIC", help="left CameraInfo topic (default: <left namespace>/camera_info)")
     bag.add_argument("--right-info", metavar="TOPIC", help="right CameraInfo topic (default: <right namespace>/camera_info)")
-    bag.add_argument("--camchain", metavar="FILE", help="Kalibr camchain.yaml; overrides the camera_info topics")
+    bag.add_argument("--camchain", metavar="FILE", help="Kalibr camchain.yaml (rosbag: instead of the camera_info "
+                                                         "topics; euroc: instead of the sensor.yaml files)")
     bag.add_argument("--rectified", action="store_true", help="the images are already rectified: use CameraInfo P only")
     bag.add_argument("--truth", metavar="TOPIC", help="ground-truth pose topic (PoseStamped, PoseWithCovarianceStamped, "
                                                       "TransformStamped or Odometry)")
@@ -81,7 +83,7 @@ def load(args):
         return load_kitti(args.path, sequence=args.sequence, max_frames=args.max_frames)
     if args.format == "euroc":
         from common.importers.euroc import load_euroc
-        return load_euroc(args.path, max_frames=args.max_frames)
+        return load_euroc(args.path, max_frames=args.max_frames, camchain=args.camchain)
     if args.format == "rosbag":
         from common.importers.rosbag import load_rosbag
         return load_rosbag(args.path, left=args.left, right=args.right, left_info=args.left_info,
