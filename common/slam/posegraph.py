@@ -24,8 +24,9 @@ or the consistent factors look like the outliers.
 
 Optimisation is incremental (iSAM2, a Gauss-Newton step per update, repeated until the error settles)
 or a batch Levenberg-Marquardt over the whole graph, after which iSAM2 restarts from the batch answer.
-A keyframe and its factors enter the optimiser together; nodes are never removed (a corridor run holds
-hundreds of keyframes, well within iSAM2's incremental cost); a factor can be removed by its handle.
+A keyframe enters the optimiser with its first factor.  A factor can be removed by its handle; keyframes
+are not (a corridor run holds hundreds, well within iSAM2's incremental cost), and one that loses its
+last factor keeps its last pose.
 """
 from __future__ import annotations
 
@@ -272,9 +273,9 @@ class PoseGraph:
             raise PoseGraphError("the graph has no prior: add_prior on one keyframe to fix the map frame")
         if batch:
             return self._optimise_batch(max_iterations)
-        constrained = self._in_solver | {k for tag in self._pending for k in self._tag_keys(tag)}
-        # A factor can enter only with all its keyframes; a keyframe only with a factor.
-        ready = [t for t in self._pending if all(k in constrained for k in self._tag_keys(t))]
+        # Every pending factor enters with the keyframes it names that iSAM2 does not hold yet.
+        ready = list(self._pending)
+        constrained = self._in_solver | {k for tag in ready for k in self._tag_keys(tag)}
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for tag in ready:
             graph.add(self._factor_of(tag))
@@ -284,7 +285,7 @@ class PoseGraph:
             result = self._isam.update(graph, values, self._removed_indices)
             for tag, index in zip(ready, result.getNewFactorsIndices()):
                 self._solver_index[tag] = int(index)
-            self._pending = [t for t in self._pending if t not in set(ready)]
+            self._pending = []
             self._in_solver |= constrained
             self._removed_indices = []
             error = self._isam_error()
