@@ -20,6 +20,7 @@ import importlib.resources
 import json
 import logging
 import os
+import re
 import signal
 import threading
 import time
@@ -88,33 +89,68 @@ def bus_options(ns: argparse.Namespace) -> BusOptions:
                       hub=ns.hub, robot=ns.robot)
 
 
+class BusConfigError(ValueError):
+    """A bus option (--config, --connect, --listen, --cfg, --hub) that cannot be used; the message names
+    the option and what it expects."""
+
+
+def _zenoh_reason(e: Exception) -> str:
+    """Zenoh's error text without its Rust source locations and debug wrapping, on one line."""
+    text = str(e)
+    m = re.search(r'msg: "(.*?)"(?:, location|\s*\}|$)', text, re.S)
+    if m:
+        text = m.group(1).encode().decode("unicode_escape", errors="replace")
+    text = re.sub(r"\s+at /\S+?:\d+\.?", "", text)
+    text = re.sub(r'^Str\("(.*)"\)$', r"\1", text)
+    return " ".join(text.split()) or type(e).__name__
+
+
 def make_config(opts: BusOptions) -> zenoh.Config:
+    """The session's configuration; a bad option raises BusConfigError naming it."""
     if opts.config:
         path = Path(opts.config)
+        if path.is_dir():
+            raise BusConfigError(f"--config {path}: is a directory, not a Zenoh JSON5 configuration file")
         if not path.is_file():
-            raise FileNotFoundError(f"Zenoh configuration {path} not found")
-        conf = zenoh.Config.from_file(str(path))
+            raise BusConfigError(f"--config {path}: Zenoh configuration file not found")
+        try:
+            conf = zenoh.Config.from_file(str(path))
+        except zenoh.ZError as e:
+            raise BusConfigError(f"--config {path}: not a valid Zenoh JSON5 configuration ({_zenoh_reason(e)})") from None
     else:
         conf = zenoh.Config.from_json5(DEFAULT_CONFIG.read_text())
+
+    def insert(flag: str, value: str, key: str, json5: str) -> None:
+        try:
+            conf.insert_json5(key, json5)
+        except zenoh.ZError as e:
+            expected = " (expected KEY:JSON5 with a Zenoh configuration key)" if flag == "--cfg" else \
+                " (expected an endpoint such as tcp/192.168.1.10:7447)"
+            raise BusConfigError(f"{flag} {value!r}: {_zenoh_reason(e)}{expected}") from None
+
     if opts.hub:
         host = opts.hub.rsplit(":", 1)[0]
-        conf.insert_json5("listen/endpoints", json.dumps([opts.hub, f"{host}:0"]))
-        conf.insert_json5("connect/endpoints", json.dumps([opts.hub]))
+        insert("--hub", opts.hub, "listen/endpoints", json.dumps([opts.hub, f"{host}:0"]))
+        insert("--hub", opts.hub, "connect/endpoints", json.dumps([opts.hub]))
         conf.insert_json5("listen/exit_on_failure", "false")
     if opts.connect:
-        conf.insert_json5("connect/endpoints", json.dumps(opts.connect))
+        insert("--connect", " ".join(opts.connect), "connect/endpoints", json.dumps(opts.connect))
     if opts.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(opts.listen))
+        insert("--listen", " ".join(opts.listen), "listen/endpoints", json.dumps(opts.listen))
     for item in opts.cfg:
         key, sep, value = item.partition(":")
-        if not sep:
-            raise ValueError(f"--cfg expects KEY:JSON5, got {item!r}")
-        conf.insert_json5(key, value)
+        if not sep or not key:
+            raise BusConfigError(f"--cfg expects KEY:JSON5 (e.g. 'scouting/multicast/enabled:true'), got {item!r}")
+        insert("--cfg", item, key, value)
     return conf
 
 
 def open_session(opts: BusOptions) -> zenoh.Session:
-    return zenoh.open(make_config(opts))
+    conf = make_config(opts)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise BusConfigError(f"cannot open the Zenoh session: {_zenoh_reason(e)}") from None
 
 
 # ----------------------------------------------------------------------------------- counters

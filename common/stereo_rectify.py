@@ -70,6 +70,12 @@ class RawStereoRig:
         self.width, self.height = int(self.width), int(self.height)
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-4) or np.linalg.det(self.R) < 0:
             raise CalibrationError("R is not a rotation matrix")
+        for name, K in (("K1", self.K1), ("K2", self.K2)):
+            if K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise CalibrationError(f"{name}: focal lengths fx, fy must be positive, got {K[0, 0]:g}, {K[1, 1]:g}")
+        if np.linalg.norm(self.T) < 1e-9:
+            raise CalibrationError(f"T: the baseline must be non-zero (two cameras at one place cannot give "
+                                   f"depth), got {self.T.tolist()}")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -103,9 +109,14 @@ def rectify_rig(rig: RawStereoRig, alpha: float = 0.0) -> StereoCalibration:
 
     Raises CalibrationError for a vertical rig or one whose right camera is on the left.
     """
-    R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
-        rig.K1, rig.D1, rig.K2, rig.D2, rig.size, rig.R, rig.T.reshape(3, 1),
-        flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
+    try:
+        R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
+            rig.K1, rig.D1, rig.K2, rig.D2, rig.size, rig.R, rig.T.reshape(3, 1),
+            flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
+    except cv2.error as e:
+        raise CalibrationError(f"stereo rectification failed: {str(e).strip().splitlines()[-1]}") from None
+    if not (np.all(np.isfinite(P1)) and np.all(np.isfinite(P2))):
+        raise CalibrationError("stereo rectification gave non-finite projections (degenerate K, R or T)")
     if abs(P2[1, 3]) > abs(P2[0, 3]):
         raise CalibrationError("the cameras are stacked vertically (T mostly along y); flyslam needs a "
                                "horizontal rig")
@@ -245,9 +256,12 @@ def load_stereo_yaml(paths, units_m: float | None = None) -> RawStereoRig:
     if not np.isfinite(units_m) or units_m <= 0:
         raise CalibrationError(f"units_m must be a positive number, got {units_m}")
     T_base = nodes["T_base_camera"][0] if "T_base_camera" in nodes else None
-    rig = RawStereoRig(width=int(round(width)), height=int(round(height)), K1=get("K1"), D1=get("D1"),
-                       K2=get("K2"), D2=get("D2"), R=get("R"), T=get("T").ravel() * units_m,
-                       T_base_camera=None if T_base is None else _matrix(T_base, (4, 4), "T_base_camera"))
+    try:
+        rig = RawStereoRig(width=int(round(width)), height=int(round(height)), K1=get("K1"), D1=get("D1"),
+                           K2=get("K2"), D2=get("D2"), R=get("R"), T=get("T").ravel() * units_m,
+                           T_base_camera=None if T_base is None else _matrix(T_base, (4, 4), "T_base_camera"))
+    except (CalibrationError, ValueError, OverflowError) as e:   # int() of a NaN or inf size, too
+        raise CalibrationError(f"{where}: {e}") from None
     return rig
 
 
@@ -284,5 +298,11 @@ def save_stereo_yaml(path, rig: RawStereoRig, info: dict | None = None) -> None:
 
 
 def load_calibration(paths, units_m: float | None = None) -> StereoCalibration:
-    """Rectified calibration from YAML file(s): :func:`load_stereo_yaml` then :func:`rectify_rig`."""
-    return rectify_rig(load_stereo_yaml(paths, units_m))
+    """Rectified calibration from YAML file(s): :func:`load_stereo_yaml` then :func:`rectify_rig`;
+    a CalibrationError names the file(s)."""
+    rig = load_stereo_yaml(paths, units_m)
+    try:
+        return rectify_rig(rig)
+    except CalibrationError as e:
+        names = ", ".join(str(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths))
+        raise CalibrationError(f"{names}: {e}") from None

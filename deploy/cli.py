@@ -2,11 +2,26 @@
 
 Every subcommand is a module with ``main(argv) -> int`` that owns its argument parser, so
 ``flyslam <command> --help`` documents that command fully and ``python -m <module>`` behaves the same.
+
+Errors are one line on stderr, ``flyslam <command>: <what and where>``, never a traceback unless
+``flyslam --debug <command> ...``. Exit status, for every command:
+
+- 0: done; 1: failed (a required service gave up, an internal error);
+- 2: usage or bad input (a flag, a launch/scenario/calibration/config file that cannot be used);
+- 3: a damaged recording (read up to the damage);
+- 130: interrupted (Ctrl-C).
 """
 from __future__ import annotations
 
 import importlib
 import sys
+
+from common.recording import RecordingError
+
+EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 1, 2, 130
+# What bad input raises: the project's errors are ValueErrors naming the file and field (LaunchError,
+# BusConfigError, CalibrationError, ScenarioError, ...), OSError a file that cannot be read.
+BAD_INPUT = (ValueError, OSError, RecordingError)
 
 # name -> (module, one-line help). Order is the order shown in --help.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -30,14 +45,30 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 def usage() -> str:
     width = max(len(n) for n in COMMANDS)
-    lines = ["usage: flyslam <command> [options]   (flyslam <command> --help for details)", "",
+    lines = ["usage: flyslam [--debug] <command> [options]   (flyslam <command> --help for details)", "",
              "The Fly algorithm for robot stereovision and SLAM, as processes on a Zenoh bus.", "", "commands:"]
     lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+    lines += ["", "--debug: print the traceback of an error instead of one line",
+              "exit status: 0 done, 1 failed, 2 usage or bad input, 3 damaged recording, 130 interrupted"]
     return "\n".join(lines)
 
 
+def describe(e: BaseException) -> str:
+    """One line for an error: the project's messages name file and field already; an OSError gets its
+    file name and reason; anything else its type."""
+    if isinstance(e, OSError) and e.strerror:
+        return f"{e.filename}: {e.strerror}" if e.filename else e.strerror
+    text = " ".join(str(e).split())
+    if isinstance(e, BAD_INPUT) and text:
+        return text
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    argv = sys.argv[1:] if argv is None else list(argv)
+    debug = bool(argv) and argv[0] == "--debug"
+    if debug:
+        argv = argv[1:]
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(usage())
         return 0
@@ -54,7 +85,20 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         raise
     sys.argv[0] = f"flyslam {name}"
-    return int(module.main(rest) or 0)
+    if debug:
+        return int(module.main(rest) or 0)
+    try:
+        return int(module.main(rest) or 0)
+    except KeyboardInterrupt:
+        print(f"flyslam {name}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BAD_INPUT as e:
+        print(f"flyslam {name}: {describe(e)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as e:  # noqa: BLE001 - the top level: one line, the traceback with --debug
+        print(f"flyslam {name}: internal error, {describe(e)} (flyslam --debug {name} ... shows the traceback)",
+              file=sys.stderr)
+        return EXIT_FAILED
 
 
 if __name__ == "__main__":

@@ -57,7 +57,7 @@ from pathlib import Path
 
 import zenoh
 
-from common.bus import Node, add_bus_arguments, bus_options, setup_logging
+from common.bus import BusConfigError, Node, add_bus_arguments, bus_options, make_config, setup_logging
 from common.messages import DecodeError, Heartbeat, decode
 
 log = logging.getLogger("flyslam.supervisor")
@@ -619,6 +619,11 @@ def main(argv=None) -> int:
     opts = bus_options(args)
     if launch.robot and args.robot == "rig":
         opts.robot = launch.robot
+    try:
+        make_config(opts)   # a bad bus flag fails here, before the run folder is made or anything starts
+    except BusConfigError as e:
+        print(f"flyslam run: {e}", file=sys.stderr)
+        return 2
     sup = Supervisor(launch, out.resolve(), opts, args.duration)
     try:
         sup.prepare()

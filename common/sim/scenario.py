@@ -443,13 +443,17 @@ def load_scenario(path) -> Scenario:
     """Read and check a scenario TOML file. Raises ScenarioError naming the file and field."""
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_bytes().decode("utf-8")
     except OSError as e:
         raise ScenarioError(f"{p}: cannot read scenario file ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise ScenarioError(f"{p}: not UTF-8 text (byte {e.start}); a scenario is TOML") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{p}: not valid TOML ({e})") from None
+    if not data:
+        raise ScenarioError(f"{p}: empty scenario (no keys or tables); see {SCENARIO_DIR / 'corridor.toml'}")
     return parse_scenario(data, source=str(p))
 
 
