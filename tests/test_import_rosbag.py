@@ -55,15 +55,15 @@ CLIP = _clip()
 class Bag:
     """A ROS 1 or ROS 2 bag being written: typed message construction and serialisation."""
 
-    def __init__(self, path: Path, ros: int):
+    def __init__(self, path: Path, ros: int, storage: str = "sqlite3"):
         self.ros = ros
         self.ts = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
         if ros == 1:
             from rosbags.rosbag1 import Writer
             self.writer = Writer(path)
         else:
-            from rosbags.rosbag2 import Writer
-            self.writer = Writer(path, version=9)
+            from rosbags.rosbag2 import StoragePlugin, Writer
+            self.writer = Writer(path, version=9, storage_plugin=StoragePlugin[storage.upper()])
         self.conns = {}
 
     def __enter__(self):
@@ -87,18 +87,19 @@ class Bag:
         raw = self.ts.serialize_ros1(msg, msgtype) if self.ros == 1 else self.ts.serialize_cdr(msg, msgtype)
         self.writer.write(self.conns[topic], log_ns, raw)
 
-    def image(self, topic, img: np.ndarray, stamp_ns, encoding="mono8", compressed=False):
+    def image(self, topic, img: np.ndarray, stamp_ns, encoding="mono8", compressed=False, log_ns=None):
+        log_ns = stamp_ns + 5_000_000 if log_ns is None else log_ns
         if compressed:
             ok, data = cv2.imencode(".png", img)
             msg = self.t("sensor_msgs/msg/CompressedImage")(header=self.header(stamp_ns), format="png",
                                                            data=data.ravel())
-            self.write(topic, "sensor_msgs/msg/CompressedImage", msg, stamp_ns + 5_000_000)
+            self.write(topic, "sensor_msgs/msg/CompressedImage", msg, log_ns)
             return
         h, w = img.shape[:2]
         data = np.ascontiguousarray(img).view(np.uint8).ravel()
         msg = self.t("sensor_msgs/msg/Image")(header=self.header(stamp_ns), height=h, width=w, encoding=encoding,
                                               is_bigendian=0, step=data.size // h, data=data)
-        self.write(topic, "sensor_msgs/msg/Image", msg, stamp_ns + 5_000_000)
+        self.write(topic, "sensor_msgs/msg/Image", msg, log_ns)
 
     def camera_info(self, topic, P: np.ndarray, size, stamp_ns, K=None, D=(), R=None, model="plumb_bob"):
         RegionOfInterest = self.t("sensor_msgs/msg/RegionOfInterest")
@@ -129,11 +130,12 @@ class Bag:
         self.write(topic, msgtype, msg, stamp_ns)
 
 
-def _write_clip(path: Path, ros: int, compressed=False, camera_info=True, truth=None, jitter=JITTER):
+def _write_clip(path: Path, ros: int, compressed=False, camera_info=True, truth=None, jitter=JITTER,
+                storage="sqlite3"):
     """N KITTI frames on /kitti/left|right/image_raw (+ camera_info), truth on /truth in the given style."""
     lefts, rights, P0, P1, poses = CLIP
     size = lefts[0].shape[::-1]
-    with Bag(path, ros) as bag:
+    with Bag(path, ros, storage) as bag:
         for i in range(N):
             stamp = T0 + i * PERIOD
             if camera_info:
@@ -162,9 +164,13 @@ def _expected_truth():
     return map_poses_from_camera(poses, reference=poses[0])
 
 
-@pytest.mark.parametrize("ros, compressed, truth", [(2, False, "optical"), (1, True, "body")])
-def test_bag_import_matches_the_kitti_clip(tmp_path, capsys, ros, compressed, truth):
-    bag = _write_clip(tmp_path / ("clip.bag" if ros == 1 else "clip"), ros, compressed=compressed, truth=truth)
+@pytest.mark.parametrize("ros, storage, compressed, truth", [(2, "sqlite3", False, "optical"),
+                                                             (2, "mcap", True, "body"), (1, None, True, "body")])
+def test_bag_import_matches_the_kitti_clip(tmp_path, capsys, ros, storage, compressed, truth):
+    bag = _write_clip(tmp_path / ("clip.bag" if ros == 1 else "clip"), ros, compressed=compressed, truth=truth,
+                      storage=storage)
+    if storage == "mcap":  # a user may point at the storage file inside the bag folder
+        bag = next(bag.glob("*.mcap"))
     out = tmp_path / "clip.mcap"
     argv = ["rosbag", str(bag), "--left", "/kitti/left/image_raw", "--right", "/kitti/right/image_raw",
             "--truth", "/truth", "--truth-frame", truth, "--out", str(out)]
@@ -283,6 +289,20 @@ def test_equidistant_camera_info_goes_through_the_fisheye_model(tmp_path):
     assert np.isfinite(found_l).all() and np.isfinite(found_r).all()
     assert np.abs(found_l[:, 1] - found_r[:, 1]).max() < 0.5
     assert np.abs(found_l - np.stack([u_l, v], 1)).max() < 0.5
+
+
+def test_zero_header_stamps_fall_back_to_the_receive_time(tmp_path):
+    lefts, rights, P0, P1, _ = CLIP
+    path = tmp_path / "unstamped"
+    with Bag(path, 2) as bag:
+        bag.camera_info("/l/camera_info", P0, lefts[0].shape[::-1], T0)
+        bag.camera_info("/r/camera_info", P1, lefts[0].shape[::-1], T0)
+        for i in range(2):
+            bag.image("/l/image", lefts[i], 0, log_ns=T0 + i * PERIOD)
+            bag.image("/r/image", rights[i], 0, log_ns=T0 + i * PERIOD + 1_000_000)
+    ds = load_rosbag(path, "/l/image", "/r/image")
+    assert ds.stamps_ns.tolist() == [T0, T0 + PERIOD]
+    assert any("2 /l/image images have a zero header stamp" in n for n in ds.notes)
 
 
 def test_pairing_takes_the_nearest_partner_once():

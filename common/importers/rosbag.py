@@ -51,10 +51,9 @@ _CHANNELS = {"mono8": 1, "8uc1": 1, "rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4,
 PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "radtan", "")
 
 
-def _stamp_ns(msg, fallback: int) -> int:
+def _stamp_ns(msg) -> int:
     t = msg.header.stamp
-    ns = int(t.sec) * 1_000_000_000 + int(t.nanosec)
-    return ns if ns else int(fallback)
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
 
 
 def info_topic(image_topic: str) -> str:
@@ -137,7 +136,7 @@ class _Topic:
     msgtype: str
     connections: list
     stamps: list
-    log_times: list
+    unstamped: int = 0  # messages with a zero header stamp (the receive time stands in)
 
 
 class _PairCursor:
@@ -337,7 +336,7 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
                                          f"{'topics of that type: ' + ', '.join(listed) if listed else 'none of that type'})")
             if info.msgtype not in types:
                 raise DatasetLayoutError(f"ROS bag: {name} is {info.msgtype}, expected {' or '.join(types)}")
-            return _Topic(name, info.msgtype, list(info.connections), [], [])
+            return _Topic(name, info.msgtype, list(info.connections), [])
 
         cam_l, cam_r = topic(left, (IMAGE, COMPRESSED), "left images"), topic(right, (IMAGE, COMPRESSED), "right images")
         wanted = [cam_l, cam_r]
@@ -359,7 +358,9 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
                     first_info[t.name] = reader.deserialize(raw, conn.msgtype)
                 continue
             msg = reader.deserialize(raw, conn.msgtype)
-            t.stamps.append(_stamp_ns(msg, log_time))
+            stamp = _stamp_ns(msg)
+            t.stamps.append(stamp or log_time)
+            t.unstamped += not stamp
             if t is truth_topic:
                 truth_msgs.append(msg)
     except AnyReaderError as e:
@@ -369,6 +370,8 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
     for t in (cam_l, cam_r):
         if not t.stamps:
             raise DatasetLayoutError(f"ROS bag: {t.name} has no messages")
+        if t.unstamped:
+            notes.append(f"{t.unstamped} {t.name} images have a zero header stamp: the bag's receive time is used")
 
     if rig is not None:
         calib, rectify, rotation_left = rig.calibration, rig.rectify, rig.rotation_left
