@@ -32,6 +32,7 @@ import zenoh
 
 from common import messages
 from common.messages import DecodeError, Heartbeat, header
+from common.streams import Stream
 
 log = logging.getLogger("flyslam.bus")
 
@@ -275,6 +276,55 @@ class Publisher:
             self._last = payload
 
 
+def _resolve(stream, expected) -> tuple[str, object]:
+    """(key under the robot prefix, schema) of a Stream or of a key string with its schema."""
+    if isinstance(stream, Stream):
+        return stream.key, expected if expected is not None else stream.schema
+    return stream, expected
+
+
+class Latched:
+    """The newest value of a latched stream: a callback subscription, seeded by asking the latched
+    publishers (:meth:`Node.query_latest`) and asked again every ``retry_s`` while still missing (a
+    replay publishes its calibration once), or every ``refresh_s`` in any case (a queryable such as the
+    map). :meth:`get` never blocks; :meth:`take` returns a value once, when it is new."""
+
+    def __init__(self, node: "Node", stream: str, expected, retry_s: float, refresh_s: float | None):
+        self._node, self.stream, self._expected = node, stream, expected
+        self.retry_s, self.refresh_s = retry_s, refresh_s
+        self._lock = threading.Lock()
+        self._value = None
+        self._taken = None
+        self._last_query = 0.0
+        node.subscribe(stream, expected, callback=self.set)
+
+    def set(self, value) -> None:
+        if value is None:
+            return
+        with self._lock:
+            self._value = value
+
+    def get(self):
+        with self._lock:
+            return self._value
+
+    def take(self):
+        """The value if it changed since the last take, else None."""
+        with self._lock:
+            if self._value is None or self._value is self._taken:
+                return None
+            self._taken = self._value
+            return self._value
+
+    def due(self) -> bool:
+        period = self.refresh_s if self.refresh_s is not None else (self.retry_s if self.get() is None else None)
+        return period is not None and time.monotonic() - self._last_query >= period
+
+    def query(self, timeout: float) -> None:
+        self._last_query = time.monotonic()
+        self.set(self._node.query_latest(self.stream, self._expected, timeout=timeout))
+
+
 # --------------------------------------------------------------------------------------- node
 
 
@@ -305,6 +355,9 @@ class Node:
         self._token = self.session.liveliness().declare_token(self.key(f"health/{service}"))
         self._status_pub = Publisher(self, self.key(f"status/{service}"))
         self._subscriptions: list = []
+        self._latched: list[Latched] = []
+        self._latched_lock = threading.Lock()
+        self._latched_thread: threading.Thread | None = None
         if handle_signals and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
@@ -364,20 +417,25 @@ class Node:
         return msg
 
     # ----------------------------------------------------------------------------- pub / sub
-    def publisher(self, stream: str, latched: bool = False, reliable: bool = False) -> Publisher:
+    def publisher(self, stream: "str | Stream", latched: bool = False, reliable: bool = False) -> Publisher:
+        """Typed publisher; a :class:`common.streams.Stream` brings its own latched/reliable flags."""
+        if isinstance(stream, Stream):
+            latched, reliable, stream = latched or stream.latched, reliable or stream.reliable, stream.key
         return Publisher(self, self.key(stream), latched=latched, reliable=reliable)
 
-    def subscribe_latest(self, stream: str, expected) -> LatestSubscription:
+    def subscribe_latest(self, stream: "str | Stream", expected=None) -> LatestSubscription:
+        stream, expected = _resolve(stream, expected)
         sub = LatestSubscription(self, self.key(stream), expected, stream.replace("/", "_"))
         self._subscriptions.append(sub)
         return sub
 
-    def subscribe(self, stream: str, expected, callback: Callable, raw: bool = False):
+    def subscribe(self, stream: "str | Stream", expected=None, callback: Callable | None = None, raw: bool = False):
         """Callback subscription (runs on a Zenoh thread). Invalid payloads are counted, not passed on.
 
         Exceptions raised by the callback are logged and counted as ``callback_errors`` so that one bad
         message cannot kill the subscription. With ``raw=True`` the callback gets (key, bytes) unvalidated.
         """
+        stream, expected = _resolve(stream, expected)
         name = stream.replace("/", "_").replace("*", "any")
 
         def on_sample(sample: zenoh.Sample):
@@ -397,8 +455,9 @@ class Node:
         self._subscriptions.append(sub)
         return sub
 
-    def query_latest(self, stream: str, expected, timeout: float = 1.0):
+    def query_latest(self, stream: "str | Stream", expected=None, timeout: float = 1.0):
         """Ask latched publishers of ``stream`` for their last message (None if nobody answers)."""
+        stream, expected = _resolve(stream, expected)
         replies = self.session.get(self.key(stream), timeout=timeout)
         for reply in replies:
             if reply.ok is not None:
@@ -406,6 +465,62 @@ class Node:
                 if msg is not None:
                     return msg
         return None
+
+    def latched(self, stream: "str | Stream", expected=None, timeout: float = 1.0, retry_s: float = 1.0,
+                refresh_s: float | None = None) -> "Latched":
+        """The newest value of a latched stream (calibration, target...): see :class:`Latched`."""
+        stream, expected = _resolve(stream, expected)
+        value = Latched(self, stream, expected, retry_s, refresh_s)
+        with self._latched_lock:
+            self._latched.append(value)
+            if self._latched_thread is None:
+                self._latched_thread = threading.Thread(target=self._latched_loop, name=f"{self.service}-latched",
+                                                        daemon=True)
+                self._latched_thread.start()
+        value.query(timeout)
+        return value
+
+    def _latched_loop(self) -> None:
+        while not self._stop.wait(0.1):
+            with self._latched_lock:
+                due = [v for v in self._latched if v.due()]
+            for v in due:
+                try:
+                    v.query(0.5)
+                except Exception as e:  # the session may be closing
+                    log.debug("latched query: %s", e)
+
+    def queryable(self, stream: "str | Stream", handler: Callable[[], object]):
+        """Answer queries on ``stream`` with ``handler()`` (a message, encoded here; None: no answer).
+        The handler runs on a Zenoh thread; its errors are counted as ``query_errors``."""
+        stream, _ = _resolve(stream, None)
+
+        def answer(query: zenoh.Query) -> None:
+            try:
+                msg = handler()
+                if msg is not None:
+                    query.reply(query.key_expr, messages.encode(msg))
+            except Exception as e:  # noqa: BLE001 - one failed answer must not kill the queryable
+                self.counters.add("query_errors")
+                self._bad.warn(f"q-{stream}", f"{self.service}: answering {stream}: {type(e).__name__}: {e}")
+
+        q = self.session.declare_queryable(self.key(stream), answer)
+        self._subscriptions.append(q)
+        return q
+
+    def watch_liveliness(self, prefix: str, callback: Callable[[str, bool], None]):
+        """Call ``callback(name, alive)`` for every liveliness token under ``<robot>/<prefix>`` (e.g.
+        ``health/``), for those already alive too; ``name`` is the key after the prefix."""
+        full = self.key(prefix)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            if key.startswith(full):
+                callback(key[len(full):], sample.kind == zenoh.SampleKind.PUT)
+
+        sub = self.session.liveliness().declare_subscriber(full + "*", on_sample, history=True)
+        self._subscriptions.append(sub)
+        return sub
 
     # --------------------------------------------------------------------------------- heartbeat
     def _publish_heartbeat(self) -> None:

@@ -1,8 +1,8 @@
 """The evolver → localiser chain run in lockstep on a recording, deterministically.
 
 Live, the services run asynchronously and the evolver works on whatever frame is newest. For
-evaluation that is not reproducible, so ``flyslam eval`` drives the same library classes in one
-process: every frame is used, the evolver gets a fixed number of generations per frame, odometry is
+evaluation that is not reproducible, so ``flyslam eval`` drives the services' own cores
+(:class:`EvolverCore`, :class:`LocaliserCore`) in one process: every frame is used, the evolver gets a fixed number of generations per frame, odometry is
 read at each frame's stamp. Same recording + same seed → same trajectory.
 
 Odometry: the wheel odometry's own integrated pose (``pose_xyyaw``) when the recording has it; image-only
@@ -17,12 +17,13 @@ from typing import Callable, Iterable
 import numpy as np
 
 from common import messages as m
-from common.fly import EvolverConfig, FlyEvolver
-from common.geometry import invert, planar_pose
-from common.images import frame_images
+from common.fly import EvolverConfig
+from common.fly.core import EvolverCore
+from common.geometry import planar_pose
 from common.pose_buffer import PoseBuffer
 from common.recording import RecordedMessage
-from common.slam import FlyLocaliser, LocaliserConfig
+from common.slam import LocaliserConfig
+from common.slam.core import LocaliserCore
 
 
 @dataclass
@@ -50,10 +51,11 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
                  evolver_config: EvolverConfig | None = None, localiser_config: LocaliserConfig | None = None,
                  max_frames: int | None = None,
                  progress: Callable[[int, str], None] | None = None) -> LockstepResult:
+    """Run the live services' cores (EvolverCore → LocaliserCore) over every frame of ``messages``."""
     res = LockstepResult()
-    odom = PoseBuffer(maxlen=100_000, max_extrapolation_ns=100_000_000)
-    evolver = localiser = calib = None
-    last_T_odom_cam = None
+    evolver = EvolverCore(evolver_config or EvolverConfig(), settle=generations_per_frame,
+                          seed=seed, odometry=PoseBuffer(maxlen=100_000, max_extrapolation_ns=100_000_000))
+    localiser = LocaliserCore(localiser_config, seed=seed)
     t0 = time.perf_counter()
     for rec in messages:
         stream = rec.key.split("/", 1)[-1]
@@ -63,35 +65,30 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             msg = m.decode(rec.payload)
         except m.DecodeError:
             continue
-        if stream == "stereo/calibration" and calib is None:
-            calib = m.calibration_from_msg(msg)
-            evolver = FlyEvolver(calib, evolver_config or EvolverConfig(depth_max=30.0), seed=seed)
-            localiser = FlyLocaliser(calib.T_base_camera, localiser_config, seed=seed, calibration=calib)
+        if stream == "stereo/calibration":
+            evolver.on_calibration(msg)
+            localiser.on_calibration(msg)
         elif stream == "odom/wheels" and msg.pose_xyyaw is not None:
-            odom.add(msg.header.stamp_ns, planar_pose(*msg.pose_xyyaw))
+            evolver.on_odometry(msg.header.stamp_ns, planar_pose(*msg.pose_xyyaw))
         elif stream == "truth/pose":
             res.truth_stamps.append(msg.header.stamp_ns)
             res.truth.append(m.transform_of(msg))
-        elif stream == "stereo/frame" and evolver is not None:
-            stamp = msg.header.stamp_ns
-            left, right = frame_images(msg)
-            T_odom_base = odom.at(stamp)
-            T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera
-            if T_odom_cam is not None and last_T_odom_cam is not None:
-                evolver.move_flies(invert(T_odom_cam) @ last_T_odom_cam, rescore=False)   # set_images re-scores
-            last_T_odom_cam = T_odom_cam
-            evolver.set_images(left, right)
-            evolver.step(generations_per_frame)
-            est = localiser.update(stamp, evolver.positions, evolver.fitness, T_odom_base, evolver.generation)
-            res.stamps.append(stamp)
-            res.estimated.append(est.T_map_base)
-            res.odometry.append(T_odom_base)
-            res.statuses.append(est.status)
+        elif stream == "stereo/frame":
+            frame = evolver.on_frame(msg)
+            if frame.population is None:
+                continue
+            out = localiser.on_population(frame.population)
+            if out.estimate is None:
+                continue
+            res.stamps.append(frame.population.header.stamp_ns)
+            res.estimated.append(out.estimate.T_map_base)
+            res.odometry.append(frame.T_odom_base)
+            res.statuses.append(out.estimate.status)
             res.frames += 1
             if progress:
-                progress(res.frames, est.status)
+                progress(res.frames, out.estimate.status)
             if max_frames and res.frames >= max_frames:
                 break
     res.seconds = time.perf_counter() - t0
-    res.keyframes = len(localiser.keyframes) if localiser else 0
+    res.keyframes = len(localiser.keyframes)
     return res

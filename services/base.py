@@ -5,6 +5,7 @@ import argparse
 from typing import Callable
 
 from common.bus import Node, add_bus_arguments, bus_options, setup_logging
+from common.config_args import config_from_args
 
 
 def service_parser(name: str, description: str) -> argparse.ArgumentParser:
@@ -12,6 +13,14 @@ def service_parser(name: str, description: str) -> argparse.ArgumentParser:
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_bus_arguments(parser)
     return parser
+
+
+def config_or_exit(cls, args: argparse.Namespace, only=None, rename=None, **extra):
+    """The dataclass ``cls`` the flags describe; an invalid combination ends the process with one line."""
+    try:
+        return config_from_args(cls, args, only, rename, **extra)
+    except ValueError as e:
+        raise SystemExit(f"flyslam: {e}") from None
 
 
 def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node, argparse.Namespace], int | None],

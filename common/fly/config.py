@@ -26,7 +26,7 @@ class EvolverConfig:
     population: int = 5000
     neighbourhood: int = 7            # N of the N×N window compared between left and right (odd, 3..15)
     depth_min: float = 0.3            # metres; flies are drawn with 1/z uniform in [1/depth_max, 1/depth_min]
-    depth_max: float = math.inf       # metres; may be infinite (1/z down to 0)
+    depth_max: float = 30.0           # metres; may be infinite (1/z down to 0)
     mode: str = "steady"              # 'steady' | 'generational'
     selection: str = "tournament"     # 'tournament' | 'elitist'
     tournament_size: int = 2

@@ -96,7 +96,7 @@ def main(argv=None) -> int:
         bar.update(n, f"frames, last: {status[:50]}")
 
     result = run_lockstep(reader.messages(), generations_per_frame=args.generations, seed=args.seed,
-                          evolver_config=EvolverConfig(population=args.population, depth_max=30.0),
+                          evolver_config=EvolverConfig(population=args.population),
                           localiser_config=localiser_config,
                           max_frames=args.max_frames, progress=progress)
     bar.done()

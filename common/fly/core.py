@@ -1,0 +1,210 @@
+"""The evolver service's state machine without a bus: messages in, populations out.
+
+``EvolverCore`` is what both the live ``services/evolver.py`` and ``common/lockstep.py`` (``flyslam
+eval``) run, so a change to the per-frame step reaches both:
+
+* ``on_calibration(StereoCalibrationMsg)`` latches the calibration; the next frame applies it (a new
+  size, fx or baseline re-creates the evolver; a bad one is refused with a reason).
+* ``on_odometry(stamp_ns, T_odom_base)`` and ``on_sonar(SonarScan)`` feed the odometry history and the
+  sonar fitness term.
+* ``on_frame(StereoFrame)`` decodes and checks the pair, moves the flies by the camera's motion since
+  the previous frame, re-scores them on the new images, evolves them (``settle``: a
+  :class:`SettlePolicy` live, a fixed number of generations in lockstep) and returns a
+  :class:`FrameResult` with the ``FlyPopulation`` and the ``EvolverTrace`` of that frame.
+* ``step()`` evolves one generation between frames; ``population()`` is the current answer.
+
+Not thread-safe: the service serialises calls.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from common import messages as m
+from common.camera import CalibrationError, StereoCalibration
+from common.fly.config import EvolverConfig
+from common.fly.evolver import FlyEvolver
+from common.fly.scheduling import SettlePolicy, population_quality, settle
+from common.geometry import invert
+from common.images import frame_images
+from common.pose_buffer import PoseBuffer
+
+log = logging.getLogger("flyslam.evolver")
+
+
+@dataclass
+class EvolverServiceConfig:
+    """The live evolver's scheduling (the algorithm's own settings are :class:`EvolverConfig`)."""
+    settle_ms: float = field(default=40.0, metadata={"help": "longest evolution on a new frame before publishing (ms)"})
+    min_generations: int = field(default=1, metadata={"help": "generations on a new frame before it may be published"})
+    recovery: float = field(default=0.95, metadata={
+        "help": "publish once mean fitness is back to this fraction of the previous frame's"})
+    publish_hz: float = field(default=10.0, metadata={"help": "republish rate between frames (Hz)"})
+    duty: float = field(default=0.7, metadata={"help": "fraction of wall time spent evolving between frames"})
+    sonar_weight: float = field(default=0.0, metadata={"help": "weight of the sonar fitness term (0 = off)"})
+    seed: int = field(default=0, metadata={"help": "random seed of the evolver"})
+
+    def settle_policy(self) -> SettlePolicy:
+        return SettlePolicy(self.settle_ms / 1000, self.min_generations, self.recovery)
+
+
+@dataclass
+class FrameResult:
+    """What one frame gave: the population (None when the frame was refused, ``reason`` says why)."""
+    population: m.FlyPopulation | None = None
+    trace: m.EvolverTrace | None = None
+    generations: int = 0
+    reason: str | None = None           # 'no calibration', 'bad calibration: ...', 'bad frame: ...'
+    without_odometry: bool = False      # odometry was missing for this frame (no motion compensation)
+    T_odom_base: np.ndarray | None = None
+
+
+def _same_geometry(a: StereoCalibration | None, b: StereoCalibration) -> bool:
+    return a is not None and (a.width, a.height, a.fx, a.baseline) == (b.width, b.height, b.fx, b.baseline)
+
+
+class EvolverCore:
+    """One fly population kept on the newest frame (see the module docstring).
+
+    ``settle`` is a :class:`SettlePolicy` (live: evolve until good enough or out of time) or an int (a
+    fixed number of generations per frame, deterministic)."""
+
+    def __init__(self, config: EvolverConfig | None = None, settle: SettlePolicy | int = 30, seed: int = 0,
+                 sonar_weight: float = 0.0, odometry: PoseBuffer | None = None,
+                 clock: Callable[[], int] = time.monotonic_ns):
+        self.config = config or EvolverConfig()
+        self.settle = settle
+        self.seed = seed
+        self.sonar_weight = sonar_weight
+        self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=400)
+        self.clock = clock
+        self.evolver: FlyEvolver | None = None
+        self.calibration: StereoCalibration | None = None
+        self._calibration_msg: m.StereoCalibrationMsg | None = None
+        self._applied_msg: m.StereoCalibrationMsg | None = None
+        self._sonar: m.SonarScan | None = None
+        self._last_T_odom_cam: np.ndarray | None = None
+        self._current: tuple[int, int, np.ndarray | None] | None = None   # seq, stamp, T_odom_cam
+
+    # ------------------------------------------------------------------------------- inputs
+    def on_calibration(self, msg: m.StereoCalibrationMsg) -> None:
+        self._calibration_msg = msg
+
+    @property
+    def has_calibration(self) -> bool:
+        return self._calibration_msg is not None
+
+    def on_odometry(self, stamp_ns: int, T_odom_base: np.ndarray) -> None:
+        self.odometry.add(stamp_ns, T_odom_base)
+
+    def on_sonar(self, msg: m.SonarScan) -> None:
+        self._sonar = msg
+
+    # ------------------------------------------------------------------------------ frames
+    def _apply_calibration(self) -> str | None:
+        """Bring the evolver in line with the latched calibration; the reason when there is none usable."""
+        msg = self._calibration_msg
+        if msg is None:
+            return "no calibration"
+        if msg is self._applied_msg:
+            return None
+        try:
+            calib = m.calibration_from_msg(msg)
+        except CalibrationError as e:
+            return f"bad calibration: {e}"
+        self._applied_msg = msg
+        if not _same_geometry(self.calibration, calib):
+            self.calibration = calib
+            self.evolver = FlyEvolver(calib, self.config, seed=self.seed)
+            if self.sonar_weight > 0:
+                self._attach_sonar(self.evolver, calib)
+            self._last_T_odom_cam = None
+            self._current = None
+            log.info("calibration %dx%d f=%.1f B=%.3f: %d flies", calib.width, calib.height, calib.fx,
+                     calib.baseline, self.config.population)
+        return None
+
+    def on_frame(self, frame: m.StereoFrame) -> FrameResult:
+        reason = self._apply_calibration()
+        if reason is not None:
+            return FrameResult(reason=reason)
+        evolver, calib = self.evolver, self.calibration
+        t_take = self.clock()
+        try:
+            left, right = frame_images(frame)
+            calib.check_image(left, "stereo frame")
+        except (m.DecodeError, CalibrationError) as e:
+            return FrameResult(reason=f"bad frame: {e}")
+        t_decoded = self.clock()
+        reference = population_quality(evolver.fitness) if self._current is not None else None
+        stamp = frame.header.stamp_ns
+        T_odom_base = self.odometry.at(stamp)
+        T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera
+        without_odometry = T_odom_cam is None and self._last_T_odom_cam is not None
+        if T_odom_cam is not None and self._last_T_odom_cam is not None:
+            # T_new_old: flies follow the camera's motion; set_images re-scores them.
+            evolver.move_flies(invert(T_odom_cam) @ self._last_T_odom_cam, rescore=False)
+        if T_odom_cam is not None:
+            self._last_T_odom_cam = T_odom_cam
+        evolver.set_images(left, right)
+        self._current = (frame.header.seq, stamp, T_odom_cam)
+        t_ready = self.clock()
+        if isinstance(self.settle, SettlePolicy):
+            generations = settle(evolver, reference, self.settle)
+        else:
+            evolver.step(int(self.settle))
+            generations = int(self.settle)
+        pop = self.population()
+        t_published = self.clock()
+        trace = m.EvolverTrace(take_ns=t_take, decoded_ns=t_decoded, ready_ns=t_ready, published_ns=t_published,
+                               generations=int(generations), reference=reference,
+                               quality=population_quality(evolver.fitness),
+                               header=m.header(frame.header.seq, stamp, frame.header.frame_id))
+        return FrameResult(population=pop, trace=trace, generations=generations,
+                           without_odometry=without_odometry, T_odom_base=T_odom_base)
+
+    # ------------------------------------------------------------------------- between frames
+    @property
+    def has_population(self) -> bool:
+        return self._current is not None
+
+    def step(self) -> None:
+        """One generation on the current frame (anytime: between frames)."""
+        self.evolver.step(1)
+
+    @property
+    def generation(self) -> int:
+        return int(self.evolver.generation) if self.evolver is not None else 0
+
+    def population(self) -> m.FlyPopulation:
+        """The current population on the frame it was last evaluated on."""
+        seq, stamp, T_odom_cam = self._current
+        ev = self.evolver
+        return m.FlyPopulation(positions=ev.positions, fitness=ev.fitness, generation=int(ev.generation),
+                               source_seq=int(seq), T_odom_camera=T_odom_cam,
+                               header=m.header(0, stamp, m.CAMERA_LEFT_OPTICAL))
+
+    # --------------------------------------------------------------------------------- sonar
+    def _attach_sonar(self, evolver: FlyEvolver, calib: StereoCalibration) -> None:
+        """Plug the sonar fitness term into the evolver, fed by the newest scan."""
+        from common.fusion.sonar import SonarScanError
+        from common.fusion.sonar_term import SonarTerm
+
+        term = SonarTerm()
+        seen = {"scan": None}
+
+        def fn(positions):
+            scan = self._sonar
+            if scan is not None and scan is not seen["scan"]:
+                seen["scan"] = scan
+                try:
+                    term.update(scan, calib.T_base_camera)
+                except SonarScanError as e:
+                    log.warning("sonar scan ignored: %s", e)
+            return term(positions)
+
+        evolver.add_fitness_term("sonar", fn, self.sonar_weight)

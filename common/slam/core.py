@@ -1,0 +1,117 @@
+"""The localiser service's state machine without a bus: populations in, pose messages out.
+
+``LocaliserCore`` wraps :class:`common.slam.FlyLocaliser` (public API only) and is what both the live
+``services/localiser.py`` and ``common/lockstep.py`` run:
+
+* ``on_calibration(StereoCalibrationMsg)`` latches the calibration; the localiser is created at the
+  first population after it (later calibrations are kept for reference only: the map is in one frame).
+* ``on_odometry(stamp_ns, T_odom_base)``: the odometry prior for populations without ``T_odom_camera``.
+* ``on_population(FlyPopulation)`` → a :class:`LocaliserOutput` (``slam/pose`` PoseEstimate,
+  ``slam/map_to_odom`` TransformMsg, the Estimate) or one with ``reason`` set: a population republished
+  for a frame already localised (same ``source_seq``) is skipped, one before any calibration or a
+  malformed one is refused.
+* ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``stamps``/``poses`` the trajectory so far.
+
+Not thread-safe: the service serialises calls.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common import messages as m
+from common.geometry import invert, pose_from_transform
+from common.pose_buffer import PoseBuffer
+from common.slam.localiser import Estimate, FlyLocaliser, LocaliserConfig, LocaliserError
+
+
+@dataclass
+class LocaliserServiceConfig:
+    """The live localiser's settings outside :class:`LocaliserConfig`."""
+    tum: str | None = field(default=None, metadata={
+        "help": "write the estimated trajectory (TUM) here, every tum_period_s and on exit"})
+    tum_period_s: float = field(default=5.0, metadata={"help": "seconds between TUM rewrites"})
+    seed: int = field(default=0, metadata={"help": "random seed of the localiser"})
+
+
+@dataclass
+class LocaliserOutput:
+    pose: m.PoseEstimate | None = None
+    map_to_odom: m.TransformMsg | None = None
+    estimate: Estimate | None = None
+    reason: str | None = None       # 'republished', 'no calibration', 'bad population: ...'
+
+
+class LocaliserCore:
+    def __init__(self, config: LocaliserConfig | None = None, seed: int = 0, odometry: PoseBuffer | None = None):
+        self.config = config or LocaliserConfig()
+        self.seed = seed
+        self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=1000)
+        self.localiser: FlyLocaliser | None = None
+        self._calibration_msg: m.StereoCalibrationMsg | None = None
+        self._last_source_seq: int | None = None
+        self.stamps: list[int] = []
+        self.poses: list[np.ndarray] = []
+
+    def on_calibration(self, msg: m.StereoCalibrationMsg) -> None:
+        self._calibration_msg = msg
+
+    @property
+    def has_calibration(self) -> bool:
+        return self._calibration_msg is not None
+
+    def on_odometry(self, stamp_ns: int, T_odom_base: np.ndarray) -> None:
+        self.odometry.add(stamp_ns, T_odom_base)
+
+    @property
+    def keyframes(self):
+        return self.localiser.keyframes if self.localiser is not None else ()
+
+    def on_population(self, pop: m.FlyPopulation) -> LocaliserOutput:
+        if pop.source_seq == self._last_source_seq:
+            return LocaliserOutput(reason="republished")
+        self._last_source_seq = pop.source_seq
+        if self.localiser is None:
+            if self._calibration_msg is None:
+                return LocaliserOutput(reason="no calibration")
+            cmsg = self._calibration_msg
+            self.localiser = FlyLocaliser(cmsg.T_base_camera, self.config, seed=self.seed,
+                                          calibration=m.calibration_from_msg(cmsg))
+        loc = self.localiser
+        stamp = pop.header.stamp_ns
+        if pop.T_odom_camera is not None:
+            T_odom_base = pop.T_odom_camera @ invert(loc.T_base_camera)
+        else:
+            T_odom_base = self.odometry.at(stamp)
+        extra = {}
+        image = getattr(pop, "image", None)
+        if image is not None:
+            extra["image"] = image
+        try:
+            est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, **extra)
+        except LocaliserError as e:
+            return LocaliserOutput(reason=f"bad population: {e}")
+        p, q = pose_from_transform(est.T_map_odom)
+        self.stamps.append(stamp)
+        self.poses.append(est.T_map_base)
+        return LocaliserOutput(
+            pose=m.pose_msg(est.T_map_base, est.covariance, stamp_ns=stamp, status=est.status,
+                            source_seq=pop.source_seq),
+            map_to_odom=m.TransformMsg(child_frame_id=m.ODOM, translation=p, rotation=q,
+                                       header=m.header(0, stamp, m.MAP)),
+            estimate=est)
+
+    def map_message(self, stamp_ns: int) -> m.FlyMap | None:
+        if self.localiser is None:
+            return None
+        kfs = []
+        for kf in list(self.localiser.keyframes):
+            p, q = pose_from_transform(kf.T_map_base)
+            kfs.append(m.Keyframe(id=kf.id, stamp_ns=kf.stamp_ns, position=p, orientation=q, points=kf.points,
+                                  fitness=kf.fitness))
+        return m.FlyMap(keyframes=kfs, header=m.header(0, stamp_ns, m.MAP))
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps (N,) int64, T_map_base (N, 4, 4)) of every localised population so far."""
+        return np.array(self.stamps, np.int64), np.array(self.poses).reshape(-1, 4, 4)
