@@ -3,23 +3,26 @@
 - ``map/keyframes``: one ``flyslam.FlyMap`` message per keyframe (the bus's own schema, so the tools that
   show ``slam/map`` read it): id, stamp, T_map_base as position + xyzw quaternion, the population's
   points (K, 3) float32 in that keyframe's base_link and their fitness (K,) float32;
-- ``map/graph``: one ``flyslam.MapGraph`` message (defined here: nothing on the bus carries the graph)
-  with the pose graph's edges: i, j, T_i_j (4×4, exact), 6×6 covariance in flyslam's (x, y, z, rx, ry, rz)
-  order (see common.slam.posegraph), kind ('odometry', 'registration', 'prior') and robust;
+- ``map/graph``: one ``flyslam.PoseEstimate`` per pose-graph edge, because an edge is exactly that:
+  the pose of keyframe j (``child_frame_id = "keyframe/<j>"``) in keyframe i (``frame_id =
+  "keyframe/<i>"``, or ``"map"`` for a prior), with its 6×6 covariance in flyslam's (x, y, z, rx, ry, rz)
+  order (see common.slam.posegraph); ``status`` is "<kind> robust" or "<kind> quadratic" (kind:
+  odometry, registration, prior).  No new schema: every message in the file is one the bus knows.
 - metadata ``flyslam.map``, written last: format version, keyframe and edge counts (a file that lost
   messages is refused, not half-loaded), the caller's ``meta`` as JSON and a CRC-32 over the payloads and
   the meta (MCAP checks its chunks, not its metadata).
 
-Everything round-trips bit for bit except a keyframe's rotation, which goes through a quaternion
-(≈1e-16).  :func:`save_map` writes a temporary file and renames it, so a process killed mid-save leaves
-the previous map intact.  :func:`load_map` turns every problem into one :class:`MapFileError` line.
+Everything round-trips bit for bit except rotations (keyframes' and edges'), which go through a
+quaternion (≈1e-16).  :func:`save_map` writes a temporary file and renames it, so a process killed
+mid-save leaves the previous map intact.  :func:`load_map` turns every problem into one
+:class:`MapFileError` line.
 """
 from __future__ import annotations
 
 import json
 import os
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,25 +41,6 @@ EDGE_KINDS = ("odometry", "registration", "prior")
 
 class MapFileError(ValueError):
     """A map that cannot be saved or loaded; the one-line message names the file and the problem."""
-
-
-@m.schema("MapEdge")
-class MapEdgeMsg:
-    """One pose-graph edge: T_i_j maps keyframe j's base_link into keyframe i's (a prior: i == j and
-    T_i_j is T_map_i); covariance over (x, y, z, rx, ry, rz) in frame j."""
-    i: int = 0
-    j: int = 0
-    T_i_j: np.ndarray = m.array_field("float64", (4, 4))
-    covariance: np.ndarray = m.array_field("float64", (6, 6))
-    kind: str = "registration"
-    robust: bool = True
-
-
-@m.schema("MapGraph")
-class MapGraph(m.Message):
-    """The fly map's pose graph (frame_id = map)."""
-    edges: list[MapEdgeMsg] = field(default_factory=list)
-    header: m.Envelope = field(default_factory=m.Envelope)
 
 
 @dataclass
@@ -103,15 +87,42 @@ def _keyframe_msg(kf) -> m.FlyMap:
     return m.FlyMap(keyframes=[msg], header=m.header(int(kf.id), int(kf.stamp_ns), m.MAP))
 
 
-def _edge_msg(e) -> MapEdgeMsg:
+def _frame(kf_id: int) -> str:
+    return f"keyframe/{kf_id}"
+
+
+def _edge_msg(e, seq: int, stamp_ns: int) -> m.PoseEstimate:
     T = np.asarray(e.T_i_j, dtype=float)
     cov = np.asarray(e.cov, dtype=float)
-    if T.shape != (4, 4) or cov.shape != (6, 6):
-        raise MapFileError(f"edge {e.i}→{e.j}: T_i_j must be 4×4 and cov 6×6, got {T.shape} and {cov.shape}")
-    if str(e.kind) not in EDGE_KINDS:
+    if T.shape != (4, 4) or cov.shape != (6, 6) or not np.all(np.isfinite(T)):
+        raise MapFileError(f"edge {e.i}→{e.j}: T_i_j must be a finite 4×4 and cov 6×6, got {T.shape} and {cov.shape}")
+    kind = str(e.kind)
+    if kind not in EDGE_KINDS:
         raise MapFileError(f"edge {e.i}→{e.j}: kind {e.kind!r}, expected one of {', '.join(EDGE_KINDS)}")
-    return MapEdgeMsg(i=int(e.i), j=int(e.j), T_i_j=T, covariance=cov, kind=str(e.kind),
-                      robust=bool(getattr(e, "robust", True)))
+    if (kind == "prior") != (int(e.i) == int(e.j)):
+        raise MapFileError(f"edge {e.i}→{e.j}: a prior has i == j, any other edge i != j")
+    robust = bool(getattr(e, "robust", True))
+    return m.pose_msg(T, cov, seq=seq, stamp_ns=stamp_ns, frame_id=m.MAP if kind == "prior" else _frame(int(e.i)),
+                      child=_frame(int(e.j)), status=f"{kind} {'robust' if robust else 'quadratic'}")
+
+
+def _edge_from_msg(msg: m.PoseEstimate) -> MapEdge:
+    """Raises ValueError on an edge message this module did not write."""
+    kind, _, weighting = msg.status.partition(" ")
+    if kind not in EDGE_KINDS or weighting not in ("robust", "quadratic"):
+        raise ValueError(f"edge status {msg.status!r}")
+    j = _frame_id(msg.child_frame_id)
+    i = j if msg.header.frame_id == m.MAP else _frame_id(msg.header.frame_id)
+    if (kind == "prior") != (msg.header.frame_id == m.MAP):
+        raise ValueError(f"edge {msg.header.frame_id} → {msg.child_frame_id} of kind {kind}")
+    return MapEdge(i, j, m.transform_of(msg), msg.covariance.copy(), kind, weighting == "robust")
+
+
+def _frame_id(frame: str) -> int:
+    prefix, _, number = frame.partition("/")
+    if prefix != "keyframe" or not number.isdigit():
+        raise ValueError(f"edge frame {frame!r} is not keyframe/<id>")
+    return int(number)
 
 
 def save_map(path: str | Path, keyframes, edges, meta: dict | None = None) -> Path:
@@ -132,19 +143,19 @@ def save_map(path: str | Path, keyframes, edges, meta: dict | None = None) -> Pa
     if len(set(ids)) != len(ids):
         raise MapFileError(f"{path}: duplicate keyframe ids")
     kf_msgs = [_keyframe_msg(kf) for kf in keyframes]
-    edge_msgs = [_edge_msg(e) for e in edges]
     known = set(ids)
-    for e in edge_msgs:
-        if e.i not in known or e.j not in known:
+    for e in edges:
+        if int(e.i) not in known or int(e.j) not in known:
             raise MapFileError(f"{path}: edge {e.i}→{e.j} names a keyframe that is not in the map")
     try:
         meta_json = json.dumps(meta or {}, sort_keys=True)
     except (TypeError, ValueError) as e:
         raise MapFileError(f"{path}: meta is not JSON-serialisable ({e})") from None
     stamp = max([int(kf.stamp_ns) for kf in keyframes], default=0)
+    edge_msgs = [_edge_msg(e, n, stamp) for n, e in enumerate(edges)]
     tmp = path.with_name(path.name + ".tmp")
     payloads = [(KEYFRAMES_KEY, m.encode(msg), msg.header.stamp_ns) for msg in kf_msgs]
-    payloads.append((GRAPH_KEY, m.encode(MapGraph(edges=edge_msgs, header=m.header(0, stamp, m.MAP))), stamp))
+    payloads += [(GRAPH_KEY, m.encode(msg), stamp) for msg in edge_msgs]
     with RecordingWriter(tmp) as w:
         for key, payload, stamp_ns in payloads:
             w.write(key, payload, stamp_ns)
@@ -183,8 +194,7 @@ def load_map(path: str | Path) -> FlyMapData:
                     keyframes.append(MapKeyframe(kf.id, kf.stamp_ns, transform_from_pose(kf.position, kf.orientation),
                                                  kf.points.copy(), kf.fitness.copy()))
             else:
-                for e in m.decode(rec.payload, MapGraph).edges:
-                    edges.append(MapEdge(e.i, e.j, e.T_i_j.copy(), e.covariance.copy(), e.kind, e.robust))
+                edges.append(_edge_from_msg(m.decode(rec.payload, m.PoseEstimate)))
         meta = json.loads(info.get("meta", "{}"))
         n_kf, n_edges = int(info.get("keyframes", -1)), int(info.get("edges", -1))
     except (m.DecodeError, ValueError) as e:
