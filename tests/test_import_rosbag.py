@@ -331,3 +331,17 @@ def test_bad_bag_gives_one_line_naming_the_topic(tmp_path, capsys, argv_extra, k
 def test_missing_bag_names_the_path(tmp_path):
     with pytest.raises(DatasetLayoutError, match="nothing.bag not found"):
         load_rosbag(tmp_path / "nothing.bag", "/a", "/b")
+
+
+def test_empty_camera_info_topic_and_one_topic_twice_are_refused(tmp_path):
+    lefts, rights, P0, P1, _ = CLIP
+    path = tmp_path / "noinfo"
+    with Bag(path, 2) as bag:
+        bag.writer.add_connection("/l/camera_info", "sensor_msgs/msg/CameraInfo", typestore=bag.ts)  # no messages
+        bag.camera_info("/r/camera_info", P1, lefts[0].shape[::-1], T0)
+        bag.image("/l/image", lefts[0], T0)
+        bag.image("/r/image", rights[0], T0)
+    with pytest.raises(DatasetLayoutError, match="/l/camera_info has no messages"):
+        load_rosbag(path, "/l/image", "/r/image")
+    with pytest.raises(DatasetLayoutError, match="left and right image topics are both /l/image"):
+        load_rosbag(path, "/l/image", "/l/image")

@@ -289,37 +289,29 @@ def _bag_path(path: Path) -> Path:
     return path
 
 
-def load_rosbag(path, left: str | None = None, right: str | None = None, left_info: str | None = None,
-                right_info: str | None = None, camchain=None, truth: str | None = None, truth_frame: str = "body",
-                sync_tolerance_ms: float = DEFAULT_SYNC_TOLERANCE_MS, rectified: bool = False,
-                max_frames: int | None = None) -> StereoDataset:
-    """A stereo sequence from a ROS 1 or ROS 2 bag (see the module doc for topics, calibration and truth)."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
+def truth_in_map(stamps_ns: np.ndarray, T_world_b: np.ndarray, frame_stamps: np.ndarray, truth_frame: str,
+                 rotation_left: np.ndarray, T_cam_imu: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Truth poses of frame B (``truth_frame``: see the module doc) → (stamps, T_map_base) over the frames."""
+    order = np.argsort(stamps_ns, kind="stable")
+    ts, T_w_b = np.asarray(stamps_ns, np.int64)[order], np.asarray(T_world_b, np.float64)[order]
+    keep = (ts >= frame_stamps[0]) & (ts <= frame_stamps[-1])
+    if not keep.any():
+        return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    ref = int(np.argmin(np.abs(ts - frame_stamps[0])))
+    if truth_frame == "body":
+        poses = invert(T_w_b[ref]) @ T_w_b
+    else:
+        T_w_cam = T_w_b if truth_frame == "optical" else T_w_b @ invert(T_cam_imu)
+        T_w_rect = T_w_cam @ make_transform(np.asarray(rotation_left, float).T)
+        poses = map_poses_from_camera(T_w_rect, reference=T_w_rect[ref])
+    return ts[keep], poses[keep]
 
-    path = _bag_path(Path(path))
-    ros1 = path.suffix == ".bag"
-    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    if truth_frame not in TRUTH_FRAMES:
-        raise DatasetLayoutError(f"ROS bag: truth frame {truth_frame!r} is not one of {', '.join(TRUTH_FRAMES)}")
-    if not np.isfinite(sync_tolerance_ms) or sync_tolerance_ms < 0:
-        raise DatasetLayoutError(f"ROS bag: the sync tolerance must be ≥ 0 ms, got {sync_tolerance_ms}")
-    notes: list[str] = []
-    rig = cams = None
-    left_cam, right_cam = "cam0", "cam1"
-    if camchain is not None:
-        cams = read_camchain(camchain)
-        by_topic = {c.rostopic: name for name, c in cams.items() if c.rostopic}
-        left_cam, right_cam = by_topic.get(left, "cam0"), by_topic.get(right, "cam1")
-        rig, cams = load_camchain(camchain, left_cam, right_cam)
-        left = left or cams[left_cam].rostopic
-        right = right or cams[right_cam].rostopic
-    if not left or not right:
-        raise DatasetLayoutError("ROS bag: say which image topics to read (--left TOPIC --right TOPIC)")
-    if truth_frame == "imu" and (cams is None or cams[left_cam].T_cam_imu is None):
-        raise DatasetLayoutError("ROS bag: --truth-frame imu needs a camchain with T_cam_imu for the left camera")
-    left_info = left_info or info_topic(left)
-    right_info = right_info or info_topic(right)
+
+def _scan(path: Path, typestore, images: tuple[str, str], infos: tuple[str, ...], truth: str | None):
+    """One pass over the bag: header stamps of the image (and truth) topics, truth messages, the first
+    CameraInfo of each info topic. Returns (left _Topic, right _Topic, {info topic: msg}, truth _Topic, msgs)."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
     try:
         reader = AnyReader([path], default_typestore=typestore)
         reader.open()
@@ -338,22 +330,17 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
                 raise DatasetLayoutError(f"ROS bag: {name} is {info.msgtype}, expected {' or '.join(types)}")
             return _Topic(name, info.msgtype, list(info.connections), [])
 
-        cam_l, cam_r = topic(left, (IMAGE, COMPRESSED), "left images"), topic(right, (IMAGE, COMPRESSED), "right images")
-        wanted = [cam_l, cam_r]
-        infos = []
-        if rig is None:
-            infos = [topic(left_info, (CAMERA_INFO,), "left camera_info; or give --camchain"),
-                     topic(right_info, (CAMERA_INFO,), "right camera_info; or give --camchain")]
-            wanted += infos
+        cams = [topic(name, (IMAGE, COMPRESSED), f"{side} images") for name, side in zip(images, ("left", "right"))]
+        info_topics = [topic(name, (CAMERA_INFO,), f"{side} camera_info; or give --camchain")
+                       for name, side in zip(infos, ("left", "right"))]
         truth_topic = topic(truth, TRUTH_TYPES, "ground truth") if truth else None
-        if truth_topic is not None:
-            wanted.append(truth_topic)
-        side = {(c.id, id(c.owner)): t for t in wanted for c in t.connections}
+        wanted = cams + info_topics + ([truth_topic] if truth_topic else [])
+        by_conn = {(c.id, id(c.owner)): t for t in wanted for c in t.connections}
         first_info: dict[str, object] = {}
         truth_msgs = []
-        for conn, log_time, raw in reader.messages(connections=list(c for t in wanted for c in t.connections)):
-            t = side[conn.id, id(conn.owner)]
-            if t in infos:
+        for conn, log_time, raw in reader.messages(connections=[c for t in wanted for c in t.connections]):
+            t = by_conn[conn.id, id(conn.owner)]
+            if t in info_topics:
                 if t.name not in first_info:
                     first_info[t.name] = reader.deserialize(raw, conn.msgtype)
                 continue
@@ -367,9 +354,44 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
         raise DatasetLayoutError(f"ROS bag: {path}: {e}") from None
     finally:
         reader.close()
-    for t in (cam_l, cam_r):
-        if not t.stamps:
+    for t in cams + info_topics:
+        if not t.stamps and t.name not in first_info:
             raise DatasetLayoutError(f"ROS bag: {t.name} has no messages")
+    return cams[0], cams[1], first_info, truth_topic, truth_msgs
+
+
+def load_rosbag(path, left: str | None = None, right: str | None = None, left_info: str | None = None,
+                right_info: str | None = None, camchain=None, truth: str | None = None, truth_frame: str = "body",
+                sync_tolerance_ms: float = DEFAULT_SYNC_TOLERANCE_MS, rectified: bool = False,
+                max_frames: int | None = None) -> StereoDataset:
+    """A stereo sequence from a ROS 1 or ROS 2 bag (see the module doc for topics, calibration and truth)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    path = _bag_path(Path(path))
+    ros1 = path.suffix == ".bag"
+    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if truth_frame not in TRUTH_FRAMES:
+        raise DatasetLayoutError(f"ROS bag: truth frame {truth_frame!r} is not one of {', '.join(TRUTH_FRAMES)}")
+    if not np.isfinite(sync_tolerance_ms) or sync_tolerance_ms < 0:
+        raise DatasetLayoutError(f"ROS bag: the sync tolerance must be ≥ 0 ms, got {sync_tolerance_ms}")
+    notes: list[str] = []
+    rig = cams = None
+    left_cam = "cam0"
+    if camchain is not None:
+        by_topic = {c.rostopic: name for name, c in read_camchain(camchain).items() if c.rostopic}
+        left_cam, right_cam = by_topic.get(left, "cam0"), by_topic.get(right, "cam1")
+        rig, cams = load_camchain(camchain, left_cam, right_cam)
+        left, right = left or cams[left_cam].rostopic, right or cams[right_cam].rostopic
+    if not left or not right:
+        raise DatasetLayoutError("ROS bag: say which image topics to read (--left TOPIC --right TOPIC)")
+    if left == right:
+        raise DatasetLayoutError(f"ROS bag: the left and right image topics are both {left}")
+    if truth_frame == "imu" and (cams is None or cams[left_cam].T_cam_imu is None):
+        raise DatasetLayoutError("ROS bag: --truth-frame imu needs a camchain with T_cam_imu for the left camera")
+    left_info, right_info = left_info or info_topic(left), right_info or info_topic(right)
+    cam_l, cam_r, first_info, truth_topic, truth_msgs = _scan(
+        path, typestore, (left, right), () if rig is not None else (left_info, right_info), truth)
+    for t in (cam_l, cam_r):
         if t.unstamped:
             notes.append(f"{t.unstamped} {t.name} images have a zero header stamp: the bag's receive time is used")
 
@@ -377,10 +399,9 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
         calib, rectify, rotation_left = rig.calibration, rig.rectify, rig.rotation_left
         notes.append(f"calibration from {camchain} ({rig.lens} lenses, rectified on import)")
     else:
-        infos_l, infos_r = (_info_arrays(first_info[i.name]) for i in infos)
         rectified = rectified or ("image_rect" in left and "image_rect" in right)
-        calib, rectify, rotation_left, how = calibration_from_camera_info(infos_l, infos_r, left_info, right_info,
-                                                                          rectified)
+        calib, rectify, rotation_left, how = calibration_from_camera_info(
+            _info_arrays(first_info[left_info]), _info_arrays(first_info[right_info]), left_info, right_info, rectified)
         notes.append(f"calibration from {left_info} and {right_info} ({how})")
 
     stamps_l, stamps_r = np.array(cam_l.stamps, np.int64), np.array(cam_r.stamps, np.int64)
@@ -412,22 +433,12 @@ def load_rosbag(path, left: str | None = None, right: str | None = None, left_in
 
     truth_stamps, truth_poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
     if truth_topic is not None:
-        ts = np.array(truth_topic.stamps, np.int64)
-        order = np.argsort(ts, kind="stable")
-        ts, T_w_b = ts[order], _truth_poses([truth_msgs[k] for k in order], truth_topic.msgtype)
-        keep = (ts >= stamps[0]) & (ts <= stamps[-1])
-        if not keep.any():
-            notes.append(f"ground truth on {truth} does not cover the imported frames")
-        else:
-            ref = int(np.argmin(np.abs(ts - stamps[0])))
-            if truth_frame == "body":
-                poses = invert(T_w_b[ref]) @ T_w_b
-            else:
-                T_w_cam = T_w_b if truth_frame == "optical" else T_w_b @ invert(cams[left_cam].T_cam_imu)
-                T_w_rect = T_w_cam @ make_transform(np.asarray(rotation_left, float).T)
-                poses = map_poses_from_camera(T_w_rect, reference=T_w_rect[ref])
-            truth_stamps, truth_poses = ts[keep], poses[keep]
-            notes.append(f"ground truth from {truth} ({truth_topic.msgtype.split('/')[-1]}, {truth_frame} frame)")
+        T_cam_imu = cams[left_cam].T_cam_imu if cams is not None else None
+        truth_stamps, truth_poses = truth_in_map(np.array(truth_topic.stamps, np.int64),
+                                                 _truth_poses(truth_msgs, truth_topic.msgtype), stamps, truth_frame,
+                                                 rotation_left, T_cam_imu)
+        notes.append(f"ground truth from {truth} ({truth_topic.msgtype.split('/')[-1]}, {truth_frame} frame)"
+                     if len(truth_stamps) else f"ground truth on {truth} does not cover the imported frames")
     else:
         notes.append("no ground truth (give --truth TOPIC)")
     kind = "ROS 1" if ros1 else "ROS 2"
