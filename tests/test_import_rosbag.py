@@ -291,6 +291,36 @@ def test_equidistant_camera_info_goes_through_the_fisheye_model(tmp_path):
     assert np.abs(found_l - np.stack([u_l, v], 1)).max() < 0.5
 
 
+def test_colour_and_bayer_images_come_out_rgb(tmp_path):
+    h, w = 48, 64
+    yy, xx = np.mgrid[0:h, 0:w]
+    rgb = np.stack([100 + 50 * np.sin(xx / 9), 120 + 40 * np.cos(yy / 7), 80 + 60 * np.sin((xx + yy) / 11)],
+                   -1).astype(np.uint8)
+    mosaic = {"bayer_rggb8": "rggb", "bayer_gbrg8": "gbrg"}
+    P0 = np.array([[60.0, 0, 32, 0], [0, 60, 24, 0], [0, 0, 1, 0]])
+    P1 = P0.copy()
+    P1[0, 3] = -6.0
+    path = tmp_path / "colour"
+    with Bag(path, 2) as bag:
+        bag.camera_info("/l/camera_info", P0, (w, h), T0)
+        bag.camera_info("/r/camera_info", P1, (w, h), T0)
+        for i, enc in enumerate(("rgb8", "bgr8", "bayer_rggb8", "bayer_gbrg8")):
+            if enc in mosaic:  # the sensor's colour filter pattern, from the top-left 2×2 cell
+                img = np.zeros((h, w), np.uint8)
+                for (dy, dx), c in zip(((0, 0), (0, 1), (1, 0), (1, 1)), mosaic[enc]):
+                    img[dy::2, dx::2] = rgb[dy::2, dx::2, "rgb".index(c)]
+            else:
+                img = rgb if enc == "rgb8" else rgb[..., ::-1]
+            bag.image("/l/image", img, T0 + i * PERIOD, encoding=enc)
+            bag.image("/r/image", img, T0 + i * PERIOD, encoding=enc)
+    ds = load_rosbag(path, "/l/image", "/r/image")
+    for i in range(4):
+        left, _ = ds.load_pair(i)
+        assert left.shape == (h, w, 3)
+        error = np.abs(left.astype(int) - rgb)[4:-4, 4:-4].mean()  # demosaicing blurs the border
+        assert error < (0.5 if i < 2 else 2.0), f"frame {i}: mean error {error:.1f}"
+
+
 def test_zero_header_stamps_fall_back_to_the_receive_time(tmp_path):
     lefts, rights, P0, P1, _ = CLIP
     path = tmp_path / "unstamped"

@@ -1,8 +1,8 @@
 """ROS 1 (``.bag``) and ROS 2 (folder with ``metadata.yaml``, sqlite3 or MCAP storage) bags → a
 :class:`~common.importers.base.StereoDataset`, read with the pure-Python ``rosbags`` package.
 
-Images: ``sensor_msgs/Image`` (mono8, mono16, rgb8, bgr8, rgba8, bgra8) or ``sensor_msgs/CompressedImage``
-(JPEG/PNG) on a left and a right topic. Each left image is paired with the right image nearest in
+Images: ``sensor_msgs/Image`` (mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8 demosaiced to RGB) or
+``sensor_msgs/CompressedImage`` (JPEG/PNG) on a left and a right topic. Each left image is paired with the right image nearest in
 header stamp, within ``sync_tolerance_ms``; each right image serves at most one pair; the frame's
 stamp is the left image's header stamp (the bag's receive time when the header stamp is zero).
 16-bit images become 8-bit by one right shift for the whole import, chosen from the first image's
@@ -47,7 +47,10 @@ TRUTH_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovar
 TRUTH_FRAMES = ("body", "optical", "imu")
 DEFAULT_SYNC_TOLERANCE_MS = 5.0
 _CHANNELS = {"mono8": 1, "8uc1": 1, "rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4, "8uc4": 4,
-             "mono16": 1, "16uc1": 1}
+             "mono16": 1, "16uc1": 1, "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1, "bayer_grbg8": 1}
+# ROS names a Bayer mosaic by its first row pair, OpenCV by its second (as cv_bridge maps them).
+_BAYER = {"bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
+          "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB}
 PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "radtan", "")
 
 
@@ -89,7 +92,7 @@ class ImageDecoder:
         enc = msg.encoding.lower()
         if enc not in _CHANNELS:
             raise DatasetLayoutError(f"ROS bag: {topic}: image encoding {msg.encoding!r} is not supported "
-                                     "(mono8, mono16, rgb8, bgr8, rgba8, bgra8)")
+                                     "(mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8)")
         h, w, c, step = int(msg.height), int(msg.width), _CHANNELS[enc], int(msg.step)
         wide = enc in ("mono16", "16uc1")
         if data.size < h * step or step < w * c * (2 if wide else 1):
@@ -100,6 +103,8 @@ class ImageDecoder:
             img = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2").astype(np.uint16)
             return self._to8(img)
         img = rows[:, : w * c].reshape(h, w, c) if c > 1 else rows[:, :w]
+        if enc in _BAYER:
+            return cv2.cvtColor(np.ascontiguousarray(img), _BAYER[enc])
         if enc in ("bgr8", "8uc3"):
             return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
         if c == 4:

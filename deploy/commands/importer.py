@@ -15,7 +15,7 @@ examples:
   flyslam import rosbag run.bag --left /cam/left/image_rect --right /cam/right/image_rect \
       --left-info /cam/left/info --right-info /cam/right/info --truth /odom --sync-tolerance-ms 10 --out run.mcap
 
-rosbag: images are sensor_msgs/Image (mono8, mono16, rgb8, bgr8, rgba8, bgra8) or CompressedImage. Each
+rosbag: images are sensor_msgs/Image (mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8) or CompressedImage. Each
 left image is paired with the right image nearest in header stamp, within --sync-tolerance-ms (default
 5 ms); unpaired images are skipped and counted. Calibration comes from --camchain (Kalibr, pinhole with
 equidistant or radtan lenses) or else from the first CameraInfo of each camera (default topic: the
