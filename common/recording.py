@@ -235,6 +235,8 @@ class RecordingWriter:
 def open_segment(base: str | Path, **kwargs) -> RecordingWriter:
     """A writer on the first free segment name of ``base``, after the last existing one; never an
     existing file, even if another process creates one meanwhile."""
+    if Path(base).is_dir():
+        raise RecordingError(f"{base}: is a directory; give a file name such as {Path(base) / 'recording.mcap'}")
     existing = _numbered_segments(Path(base))
     n = existing[-1][0] + 1 if existing else 0
     while True:
