@@ -21,9 +21,16 @@ Prints, and with --json as one JSON object on the last line:
   settle (evolution until good enough), publish→localiser start (the population waits while the
   localiser finishes the previous one: inferred as max(published, previous pose)), localiser (the rest,
   up to the pose's arrival here);
-- cpu_percent: each service's CPU time over the run, in % of one core (the machine has two);
+- cpu_percent: each service's CPU time over the whole run (start-up included), in % of one core (the
+  machine has two; the supervisor itself not counted);
+- cpu_pct_of_one_core / cpu_ms_per_frame: each service's CPU (user + system, the supervisor included)
+  while frames flow — from the first frame seen here to the last — in % of one core and in CPU-ms per
+  frame published, plus "total": the budget figure, which depends on the machine far less than latency;
 - ate_rmse_m: the localiser's poses against the replayed ground truth (a latency cut must not cost
   accuracy).
+
+``--hog`` runs the bench a second time with one busy process (``python -c 'while True: pass'``) beside
+it and reports that run's figures under the key "hog" (its files in OUT/hog/).
 
 OUT/latency_by_frame.json holds every posed frame's latency, its time in the run and its stage durations:
 whether the tail is start-up, a stretch of the run where everything slows (CPU taken by other work) or
@@ -186,6 +193,27 @@ def stage_breakdown(frame_seen: dict, traces: dict, poses: dict, by_seq: dict | 
     return out
 
 
+def cpu_while_flowing(snapshots: list[tuple[float, int, dict[int, float]]], names: dict[int, str]):
+    """({service: % of one core}, {service: CPU-ms per frame}), each with "total", between the first
+    snapshot that saw a frame and the first that saw the last one.  ``snapshots``: (monotonic s, frames
+    seen so far, {pid: CPU s so far}); a service's processes are summed."""
+    flowing = [k for k, (_, frames, _) in enumerate(snapshots) if frames > 0]
+    if len(flowing) < 2:
+        return None, None
+    i0 = flowing[0]
+    i1 = next(k for k in flowing if snapshots[k][1] == snapshots[flowing[-1]][1])
+    (t0, f0, c0), (t1, f1, c1) = snapshots[i0], snapshots[i1]
+    if t1 <= t0 or f1 <= f0:
+        return None, None
+    cpu: dict[str, float] = {}
+    for pid, first in c0.items():
+        if pid in c1:
+            cpu[names.get(pid, "?")] = cpu.get(names.get(pid, "?"), 0.0) + c1[pid] - first
+    cpu["total"] = sum(cpu.values())
+    return ({k: round(100 * v / (t1 - t0), 1) for k, v in cpu.items()},
+            {k: round(1000 * v / (f1 - f0), 2) for k, v in cpu.items()})
+
+
 def format_breakdown(stages: dict[str, list[float]], cpu: dict[str, float]) -> str:
     labels = {"frame_to_take": "frame -> evolver takes it", "decode": "  decode (JPEG x2)",
               "rescore": "  move flies + prepare images + re-score", "settle": "  settle (evolve until good enough)",
@@ -197,8 +225,17 @@ def format_breakdown(stages: dict[str, list[float]], cpu: dict[str, float]) -> s
         pc = percentiles(stages[k])
         if pc:
             lines.append(f"[pipeline]   {labels[k]:<42} {pc['p50']:7.1f} {pc['p99']:7.1f}")
-    lines.append("[pipeline] CPU per service (% of one core; 200 % = both cores): " +
+    lines.append("[pipeline] CPU per service over the whole run (% of one core; 200 % = both cores): " +
                  ", ".join(f"{k} {v:.0f}" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])))
+    return "\n".join(lines)
+
+
+def format_budget(pct: dict[str, float] | None, ms: dict[str, float] | None) -> str:
+    if not pct or not ms:
+        return "[pipeline] CPU while frames flow: not measured (fewer than two samples with frames)"
+    order = sorted((k for k in pct if k != "total"), key=lambda k: -pct[k]) + ["total"]
+    lines = ["[pipeline] CPU while frames flow:", f"[pipeline]   {'service':<12} {'% of a core':>11} {'CPU-ms/frame':>13}"]
+    lines += [f"[pipeline]   {k:<12} {pct[k]:11.1f} {ms[k]:13.2f}" for k in order]
     return "\n".join(lines)
 
 
@@ -216,6 +253,8 @@ def main(argv=None) -> int:
     p.add_argument("--image-hz", type=float, default=5.0, help="bridge's image/flies logging rate")
     p.add_argument("--no-nice", action="store_true", help="run every service at normal priority")
     p.add_argument("--out", default=str(ROOT / "bench" / "out" / "pipeline"))
+    p.add_argument("--hog", action="store_true",
+                   help="run a second time beside one busy process; that run's figures go under \"hog\"")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -226,7 +265,35 @@ def main(argv=None) -> int:
     recording = cached_recording("corridor", seed=0, seconds=args.seconds, fps=args.fps, width=640, height=480,
                                  encoding="jpeg", quality=90)
     print(f"[pipeline] recording {recording} ready in {time.monotonic() - t0:.0f} s", file=sys.stderr, flush=True)
+    result = run_once(args, out, recording)
+    if args.hog:
+        print("[pipeline] again, beside one busy process (--hog) ...", file=sys.stderr, flush=True)
+        hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        try:
+            result["hog"] = run_once(args, out / "hog", recording)
+        finally:
+            hog.kill()
+            hog.wait()
+    for label, r in [("", result)] + ([("hog: ", result["hog"])] if "hog" in result else []):
+        print(f"{label}frames published {r['frames_published']}, evolved {r['frames_evolved']} "
+              f"({100 * (r['frames_skipped_fraction'] or 0):.0f} % skipped), poses {r['poses']} "
+              f"({100 * (r['posed_fraction'] or 0):.0f} % of frames), ATE {r['ate_rmse_m']} m, load {r['loadavg_1min']}")
+        print(f"{label}pose latency p50 {r['pose_latency_p50_ms']} ms, p99 {r['pose_latency_p99_ms']} ms "
+              f"(frame published -> pose published for that frame)")
+        print(f"{label}evolver {r['evolver_generations_per_s']} generations/s; services' memory peak "
+              f"{r['peak_rss_mb']} MB, growth {r['rss_growth_mb']} MB (second half vs first)")
+        total = (r["cpu_ms_per_frame"] or {}).get("total")
+        print(f"{label}CPU while frames flow: {(r['cpu_pct_of_one_core'] or {}).get('total')} % of one core, "
+              f"{total} CPU-ms per frame in all")
+    if args.json:
+        print(json.dumps(result))
+    return 0
 
+
+def run_once(args, out: Path, recording: Path) -> dict:
+    """One run of the pipeline under the supervisor; returns the figures (the module docstring)."""
+    out.mkdir(parents=True, exist_ok=True)
+    load_start = os.getloadavg()[0]
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -285,6 +352,7 @@ def main(argv=None) -> int:
     rss_by_service: dict[str, list[float]] = {}
     cpu_first: dict[int, tuple[str, float]] = {}
     cpu_last: dict[int, float] = {}
+    cpu_snapshots: list[tuple[float, int, dict[int, float]]] = []
     with Node("bench-pipeline", BusOptions(connect=[hub], listen=["tcp/127.0.0.1:0"]), handle_signals=False) as node:
         node.subscribe("stereo/frame", None, on_frame, raw=True)
         node.subscribe("slam/pose", m.PoseEstimate, on_pose)
@@ -305,6 +373,13 @@ def main(argv=None) -> int:
                 if pid not in cpu_first:
                     cpu_first[pid] = (service_name(pid), cpu)
                 cpu_last[pid] = cpu
+            with lock:
+                seen = frames_total[0]
+            flowing = {pid: cpu_last[pid] for pid in pids if pid in cpu_last}
+            sup_cpu = cpu_seconds(sup.pid)
+            if sup_cpu is not None:
+                flowing[sup.pid] = sup_cpu
+            cpu_snapshots.append((time.monotonic(), seen, flowing))
             n = len(pose_seen)
             print(f"\r[pipeline] {time.monotonic() - t_start:5.0f} s  frames {frames_total[0]}  poses {n}  "
                   f"rss {rss_samples[-1][1]:.0f} MB", end="", file=sys.stderr, flush=True)
@@ -328,6 +403,9 @@ def main(argv=None) -> int:
     cpu_percent: dict[str, float] = {}
     for pid, (name, first) in cpu_first.items():
         cpu_percent[name] = cpu_percent.get(name, 0.0) + 100 * (cpu_last[pid] - first) / run_s
+    names = {pid: name for pid, (name, _) in cpu_first.items()}
+    names[sup.pid] = "supervisor"
+    cpu_pct, cpu_ms = cpu_while_flowing(cpu_snapshots, names)
     ate = None
     if slam_poses and truth_poses:
         try:
@@ -367,23 +445,19 @@ def main(argv=None) -> int:
         "published_quality_by_third": [round(float(np.nanmean(t)), 4) for t in thirds],
         "stages_ms": {k: percentiles(v) for k, v in stages.items()},
         "cpu_percent": {k: round(v, 1) for k, v in sorted(cpu_percent.items())},
+        "cpu_pct_of_one_core": cpu_pct,
+        "cpu_ms_per_frame": cpu_ms,
         "rss_growth_by_service_mb": {k: round(float(np.median(v[len(v) // 2:]) - np.median(v[:len(v) // 2])), 1)
                                      for k, v in sorted(rss_by_service.items()) if len(v) > 6},
         "settle_ms": args.settle_ms, "recovery": args.recovery, "duty": args.duty, "image_hz": args.image_hz,
         "niced": not args.no_nice,
         "fps": args.fps, "resolution": "640x480", "cores": os.cpu_count(),
         "loadavg_1min": round(os.getloadavg()[0], 2),
+        "loadavg_1min_at_start": round(load_start, 2),
     }
     print(format_breakdown(stages, cpu_percent), file=sys.stderr)
-    print(f"frames published {frames}, evolved {evolved} ({100 * (result['frames_skipped_fraction'] or 0):.0f} % skipped), "
-          f"poses {lat.size}, ATE {ate} m")
-    print(f"pose latency p50 {result['pose_latency_p50_ms']} ms, p99 {result['pose_latency_p99_ms']} ms "
-          f"(frame published -> pose published for that frame)")
-    print(f"evolver {result['evolver_generations_per_s']} generations/s; services' memory peak {result['peak_rss_mb']} MB, "
-          f"growth {result['rss_growth_mb']} MB (second half vs first)")
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    print(format_budget(cpu_pct, cpu_ms), file=sys.stderr)
+    return result
 
 
 if __name__ == "__main__":
