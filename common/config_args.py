@@ -71,9 +71,10 @@ def add_config_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGro
             parser.add_argument(_flag(name, rename), dest=dest, action=argparse.BooleanOptionalAction,
                                 default=default, help=text)
         elif is_tuple:
+            nargs = f.metadata.get("nargs", len(default) if default is not None else None)
             parser.add_argument(_flag(name, rename), dest=dest, type=_float if kind is float else kind,
-                                nargs=len(default), default=tuple(default), metavar=name.split("_")[0].upper(),
-                                help=text)
+                                nargs=nargs, default=None if default is None else tuple(default),
+                                metavar=f.metadata.get("metavar", name.split("_")[0].upper()), help=text)
         else:
             conv = _float if kind is float else kind if kind in (int, str) else str
             parser.add_argument(_flag(name, rename), dest=dest, type=conv, default=default, help=text)

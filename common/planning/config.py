@@ -27,10 +27,10 @@ class PlannerConfig:
     at ``unseen_half_life_s`` elsewhere, so walls beside and behind a forward camera are not forgotten.
     """
 
-    resolution: float = 0.05
+    resolution: float = 0.1
     size_m: tuple[float, float] = (10.0, 10.0)
     origin: tuple[float, float] = (-5.0, -5.0)
-    robot_radius: float = 0.2
+    robot_radius: float = 0.22
     safety_margin: float = 0.05          # added to the robot radius when inflating obstacles
     fly_z_min: float = 0.05              # flies between fly_z_min and fly_z_max (map z) are obstacles
     fly_z_max: float = 1.0               # above it: overhead, not an obstacle for a ground robot
@@ -47,11 +47,11 @@ class PlannerConfig:
     mg_coarsest: int = 48                # most unknowns of the directly solved coarsest level
     max_cycles: int = 200
     # Controller.
-    v_max: float = 0.5
-    omega_max: float = 1.5
+    v_max: float = 0.4
+    omega_max: float = 1.0
     heading_gain: float = 2.0
     turn_in_place_rad: float = math.radians(60.0)
-    slow_clearance_m: float = 0.5        # free space beyond the inflated obstacles under which to slow down
+    slow_clearance_m: float = 0.25       # free space beyond the inflated obstacles under which to slow down
     slow_target_m: float = 0.8           # distance to the target region under which to slow down
     min_speed_fraction: float = 0.2
     escape_speed: float = 0.08           # speed used to back out of inflated obstacles

@@ -1,0 +1,97 @@
+"""The planner service and its core: a wall of fit flies ahead blocks the straight way, young flies do not,
+and the live service steers towards its target from the bus's inputs."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from common import messages as m
+from common.bus import BusOptions, Node
+from common.camera import StereoCalibration
+from common.fly.selection import fittest
+from common.geometry import planar_pose
+from common.planning import PlannerConfig
+from common.planning.core import PlannerCore, PlannerServiceConfig
+from tests.helpers import hub, start_module, stop, wait_until
+
+# Camera looking along base_link x (optical z forward, x right, y down), 0.3 m up.
+T_BASE_CAMERA = np.array([[0, 0, 1, 0.0], [-1, 0, 0, 0.0], [0, -1, 0, 0.3], [0, 0, 0, 1.0]])
+
+
+def test_fittest_keeps_the_top_fraction_above_the_floor_and_never_non_finite_flies():
+    f = np.array([0.9, 0.01, 0.5, -np.inf, np.nan, 0.3, 0.02, 0.7], np.float32)
+    assert list(fittest(f, 0.25)) == [0, 7]                  # fittest first
+    assert list(fittest(f, 0.5, 0.05)) == [0, 7, 2, 5]
+    assert list(fittest(f, 0.5, 0.4)) == [0, 7, 2]           # min_fitness is a floor under the top fraction
+    assert list(fittest(f, 1.0, 0.0)) == [0, 7, 2, 5, 6, 1]  # −inf and NaN never
+    assert list(fittest(np.ones(10, np.float32), 0.5)) == list(np.argsort(-np.ones(10))[:5])   # ties: still half
+    assert len(fittest(np.zeros(0, np.float32), 0.5)) == 0
+
+
+def _wall_population(fitness: float, seq: int = 1) -> m.FlyPopulation:
+    """Flies on a wall 1.5 m ahead of the camera, across the corridor (camera frame)."""
+    rng = np.random.default_rng(seq)
+    n = 3000
+    pts = np.stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-0.2, 0.25, n), np.full(n, 1.5)], 1).astype(np.float32)
+    return m.FlyPopulation(positions=pts, fitness=np.full(n, fitness, np.float32), generation=500, source_seq=seq,
+                           T_odom_camera=T_BASE_CAMERA.copy(),
+                           header=m.header(0, seq * 10**8, m.CAMERA_LEFT_OPTICAL))
+
+
+def _core() -> PlannerCore:
+    core = PlannerCore(PlannerConfig(), PlannerServiceConfig(extent=(-1.0, -2.0, 6.0, 2.0), solve_ms=200.0))
+    core.on_calibration(m.calibration_to_msg(StereoCalibration.ideal(320, 240, T_base_camera=T_BASE_CAMERA), 1, 1))
+    core.on_pose(m.pose_msg(planar_pose(0.0, 0.0, 0.0), stamp_ns=10**8, status="ok"))
+    core.on_target(m.Target(x=4.0, y=0.0, radius_m=0.3))
+    return core
+
+
+def _heading_after(core: PlannerCore) -> tuple[m.VelocityCommand, np.ndarray]:
+    for _ in range(20):
+        cmd = core.cycle(10**8)
+        if core.report.converged:
+            break
+    return cmd, core.field_message(10**8).values
+
+
+def test_a_wall_of_fit_flies_blocks_the_way_and_young_flies_do_not():
+    free = _core()
+    free.on_population(_wall_population(0.01))          # random-looking flies: below min_fitness
+    cmd_free, field_free = _heading_after(free)
+    assert not cmd_free.stop and cmd_free.linear_mps > 0 and abs(cmd_free.angular_radps) < 0.2, cmd_free
+
+    walled = _core()
+    for seq in range(1, 4):
+        walled.on_population(_wall_population(0.5, seq))
+    cmd_wall, field_wall = _heading_after(walled)
+    assert np.isinf(field_wall).sum() > np.isinf(field_free).sum() + 20
+    assert cmd_wall.reason != "following field" or cmd_wall.linear_mps < cmd_free.linear_mps, cmd_wall
+
+
+def test_planner_service_steers_towards_the_target_and_publishes_its_field(tmp_path, zenoh_port):
+    proc = start_module("services.planner", "--extent", "-1", "-2", "6", "2", "--target", "4", "0",
+                        port=zenoh_port, log_path=tmp_path / "planner.log")
+    cmds, fields = [], []
+    try:
+        with Node("feeder", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+            node.subscribe("planner/cmd_vel", m.VelocityCommand, cmds.append)
+            node.subscribe("planner/field", m.HarmonicField, fields.append)
+            assert wait_until(lambda: cmds, 30), (tmp_path / "planner.log").read_text()[-2000:]
+            assert cmds[-1].stop and cmds[-1].reason == "no pose"
+            calib = StereoCalibration.ideal(320, 240, T_base_camera=T_BASE_CAMERA)
+            node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
+            poses = node.publisher("fusion/pose")
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and not (cmds and cmds[-1].reason == "following field"):
+                poses.publish(m.pose_msg(planar_pose(0.0, 0.0, 0.0), stamp_ns=time.time_ns(), status="ok"))
+                time.sleep(0.1)
+            assert cmds[-1].reason == "following field", [c.reason for c in cmds[-5:]]
+            assert cmds[-1].linear_mps > 0
+            assert wait_until(lambda: fields and fields[-1].path_xy is not None, 10)
+            assert stop(proc) == 0, (tmp_path / "planner.log").read_text()[-2000:]
+            assert wait_until(lambda: cmds[-1].reason == "planner stopped", 5)
+            assert cmds[-1].stop
+    finally:
+        if proc.poll() is None:
+            stop(proc)
