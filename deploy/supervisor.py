@@ -36,7 +36,7 @@ dead bridge's ``rerun --serve-web`` child must not keep its port). Children get 
 (SIGTERM when the supervisor dies, whatever killed it), and a watchdog process, in its own session,
 holds the list of live groups through a pipe: when the pipe closes without a goodbye (the supervisor
 was SIGKILLed), it SIGTERMs every group, SIGKILLs what is left after a grace period, grandchildren
-included, and marks ``run.json``. Exit status: 0, or 1 when a required service gave up, 2 for a bad
+included, marks ``run.json`` and writes the run's ``summary.json`` if the launch file asks for one. Exit status: 0, or 1 when a required service gave up, 2 for a bad
 launch file or flag.
 """
 from __future__ import annotations
@@ -197,11 +197,13 @@ def load_launch(path: Path) -> LaunchFile:
 
 
 WATCHDOG_GRACE_S = 2.0
-# Run as `python -I -c WATCHDOG_SOURCE <run.json> <grace_s>` with the supervisor writing to its stdin:
-# "+<pgid>" a group to kill if the supervisor dies, "-<pgid>" a group already reaped, "bye" a normal end.
+# Run as `python -I -c WATCHDOG_SOURCE <run.json> <grace_s> [<JSON argv>]` with the supervisor writing to
+# its stdin: "+<pgid>" a group to kill if the supervisor dies, "-<pgid>" a group already reaped, "bye" a
+# normal end. After a supervisor's death it runs the optional argv (the run's summary.json report).
 WATCHDOG_SOURCE = r"""
-import json, os, signal, sys, time
+import json, os, signal, subprocess, sys, time
 record, grace = sys.argv[1], float(sys.argv[2])
+after = json.loads(sys.argv[3]) if len(sys.argv) > 3 else None
 groups, normal_end = set(), False
 for line in iter(sys.stdin.buffer.readline, b""):
     line = line.strip().decode()
@@ -240,17 +242,27 @@ if not normal_end:
         os.replace(record + ".tmp", record)
     except (OSError, ValueError):
         pass
+    if after:
+        try:
+            subprocess.run(after, timeout=120)
+        except (OSError, subprocess.SubprocessError) as e:
+            print(f"watchdog: {after[:3]} failed: {e}", file=sys.stderr)
 """
+# The report a run writes at its end (summary.json), run by the watchdog when the supervisor could not.
+REPORT_SOURCE = ("import json, sys; from pathlib import Path; from deploy.report import pipeline_summary; "
+                 "out = Path(sys.argv[1]); (out / 'summary.json').write_text(json.dumps(pipeline_summary(out), indent=2))")
 
 
 class Watchdog:
     """The process that kills every service's group if the supervisor dies (see the module docstring)."""
 
-    def __init__(self, record: Path, log_path: Path, grace_s: float = WATCHDOG_GRACE_S):
+    def __init__(self, record: Path, log_path: Path, grace_s: float = WATCHDOG_GRACE_S,
+                 after: list[str] | None = None, env: dict | None = None):
+        argv = [sys.executable, "-I", "-c", WATCHDOG_SOURCE, str(record), str(grace_s)]
         with open(log_path, "ab") as logf:
-            self.proc = subprocess.Popen([sys.executable, "-I", "-c", WATCHDOG_SOURCE, str(record), str(grace_s)],
-                                         stdin=subprocess.PIPE, stdout=logf, stderr=subprocess.STDOUT,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(argv + ([json.dumps(after)] if after else []), stdin=subprocess.PIPE,
+                                         stdout=logf, stderr=subprocess.STDOUT, start_new_session=True, env=env,
+                                         cwd=ROOT)
 
     def _send(self, line: str) -> None:
         try:
@@ -466,7 +478,8 @@ class Supervisor:
             self._hold_latched(node, stream)
         env = dict(os.environ, PYTHONUNBUFFERED="1", FLYSLAM_RUN_DIR=str(self.out))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        self.watchdog = Watchdog(self.record_path, self.out / "logs" / "watchdog.log")
+        report = [sys.executable, "-c", REPORT_SOURCE, str(self.out)] if self.launch.report == "pipeline" else None
+        self.watchdog = Watchdog(self.record_path, self.out / "logs" / "watchdog.log", after=report, env=env)
         self.state = "running"
         try:
             t_start = time.monotonic()

@@ -161,7 +161,8 @@ def test_sigkilled_supervisor_leaves_a_record_and_no_process(tmp_path, zenoh_por
     """Children and grandchildren die within seconds of a kill -9 of the supervisor; run.json, written as
     the run started, says what happened. A service that dies takes its grandchildren with it."""
     run = tmp_path / "run"
-    sup = start_supervisor(tmp_path, zenoh_port, "".join(SLEEPERS.format(name=n) for n in ("a", "b", "c")))
+    sup = start_supervisor(tmp_path, zenoh_port, '[run]\nreport = "pipeline"\n' +
+                           "".join(SLEEPERS.format(name=n) for n in ("a", "b", "c")))
     try:
         def started() -> dict | None:
             try:
@@ -183,9 +184,10 @@ def test_sigkilled_supervisor_leaves_a_record_and_no_process(tmp_path, zenoh_por
 
         os.kill(sup.pid, signal.SIGKILL)
         sup.wait(10)
-        everyone = [pids["b"], pids["c"], grandchildren["b"], grandchildren["c"], *watchdogs]
+        everyone = [pids["b"], pids["c"], grandchildren["b"], grandchildren["c"]]
         assert wait_until(lambda: not any(alive(p) for p in everyone), 6), \
             f"survivors of the supervisor: {[cmdline(p) for p in everyone if alive(p)]}"
+        assert wait_until(lambda: not alive(watchdogs[0]), 30), "the watchdog should end after the report"
     finally:
         if sup.poll() is None:
             sup.kill()
@@ -195,6 +197,8 @@ def test_sigkilled_supervisor_leaves_a_record_and_no_process(tmp_path, zenoh_por
     record = json.loads((run / "run.json").read_text())
     assert record["state"] == "supervisor-died" and "SIGKILL" in record["stop_reason"]
     assert record["services"]["a"]["state"] == "failed" and record["services"]["b"]["state"] == "killed"
+    assert (run / "summary.json").exists(), "the watchdog should write the run's summary"
+    assert json.loads((run / "summary.json").read_text())["out"] == str(run)
 
 
 if __name__ == "__main__":
