@@ -74,7 +74,7 @@ def add_config_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGro
             nargs = f.metadata.get("nargs", len(default) if default is not None else None)
             parser.add_argument(_flag(name, rename), dest=dest, type=_float if kind is float else kind,
                                 nargs=nargs, default=None if default is None else tuple(default),
-                                metavar=f.metadata.get("metavar", name.split("_")[0].upper()), help=text)
+                                metavar=f.metadata.get("metavar", "V"), help=text)
         else:
             conv = _float if kind is float else kind if kind in (int, str) else str
             parser.add_argument(_flag(name, rename), dest=dest, type=conv, default=default, help=text)

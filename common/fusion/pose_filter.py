@@ -44,7 +44,7 @@ class FilterConfig:
     ``gate_chi2``: Mahalanobis² gate (16.27 = χ²(3) at 99.9 %). ``stale_after_s``: 'ok' turns into
     'odometry only' when the last fused correction is older than this. ``history_s``: how far back a
     delayed correction may refer."""
-    map_to_odom_sigma: tuple[float, float] = (0.05, np.deg2rad(2.0))
+    map_to_odom_sigma: tuple[float, float] = (0.05, 0.035)
     gate_chi2: float = 16.27
     max_rejections: int = 3
     stale_after_s: float = 5.0
