@@ -139,6 +139,8 @@ def test_segments_of_a_restarted_recorder_read_as_one_recording(tmp_path, capsys
     assert info.main([str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
     assert "segments   12" in out and "messages   12" in out
+    with pytest.raises(RecordingError, match="is a directory"):
+        open_segment(tmp_path / "run")
     (tmp_path / "run" / "other.mcap").write_bytes(base.read_bytes())
     with pytest.raises(RecordingError, match="several recordings"):
         RecordingReader(tmp_path / "run")
