@@ -289,9 +289,10 @@ class Latched:
     replay publishes its calibration once), or every ``refresh_s`` in any case (a queryable such as the
     map). :meth:`get` never blocks; :meth:`take` returns a value once, when it is new."""
 
-    def __init__(self, node: "Node", stream: str, expected, retry_s: float, refresh_s: float | None):
+    def __init__(self, node: "Node", stream: str, expected, retry_s: float, refresh_s: float | None,
+                 timeout: float = 1.0):
         self._node, self.stream, self._expected = node, stream, expected
-        self.retry_s, self.refresh_s = retry_s, refresh_s
+        self.retry_s, self.refresh_s, self.timeout = retry_s, refresh_s, timeout
         self._lock = threading.Lock()
         self._value = None
         self._taken = None
@@ -470,7 +471,7 @@ class Node:
                 refresh_s: float | None = None) -> "Latched":
         """The newest value of a latched stream (calibration, target...): see :class:`Latched`."""
         stream, expected = _resolve(stream, expected)
-        value = Latched(self, stream, expected, retry_s, refresh_s)
+        value = Latched(self, stream, expected, retry_s, refresh_s, timeout)
         with self._latched_lock:
             self._latched.append(value)
             if self._latched_thread is None:
@@ -486,7 +487,7 @@ class Node:
                 due = [v for v in self._latched if v.due()]
             for v in due:
                 try:
-                    v.query(0.5)
+                    v.query(v.timeout)
                 except Exception as e:  # the session may be closing
                     log.debug("latched query: %s", e)
 

@@ -6,8 +6,8 @@ Thin on purpose: subscriptions here, the message → Rerun mapping in :mod:`comm
   subscriptions polled at ``--image-hz``: the bridge never queues images it cannot afford to log.
 - Poses, commands, heartbeats, calibration and targets arrive by callback into a bounded inbox that the
   main loop drains (Rerun's timelines are per thread, so all logging happens on the main thread).
-- The localiser's map is a queryable: it is queried every ``--map-period-s`` seconds by a helper
-  thread, as is the latched calibration until it has arrived.
+- The latched calibration and the localiser's map (a queryable, asked every ``--map-period-s``
+  seconds) come through :meth:`common.bus.Node.latched`.
 - Liveliness tokens (``health/*``) are watched so that a vanished service shows as 0 in "Alive".
 
 Sinks: ``--rrd PATH`` (closed cleanly on SIGTERM/SIGINT so that ``rerun rrd verify`` passes) and a live
@@ -22,37 +22,22 @@ import queue
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import rerun as rr
-import zenoh
 
-from common import messages as m
+from common import streams as S
 from common.viz import RerunLogger, blueprint
 from services.base import run_service, service_parser
 
 log = logging.getLogger("flyslam.bridge")
 
 # Streams delivered by callback: every message matters (trajectories, commands, health).
-CALLBACK_STREAMS = {
-    "stereo/calibration": m.StereoCalibrationMsg,
-    "slam/pose": m.PoseEstimate,
-    "fusion/pose": m.PoseEstimate,
-    "fusion/odom": m.PoseEstimate,
-    "truth/pose": m.PoseEstimate,
-    "planner/cmd_vel": m.VelocityCommand,
-    "planner/target": m.Target,
-    "status/*": m.Heartbeat,
-}
+CALLBACK_STREAMS = [S.SLAM_POSE, S.FUSION_POSE, S.FUSION_ODOM, S.TRUTH_POSE, S.PLANNER_CMD_VEL, S.PLANNER_TARGET,
+                    S.STATUS]
 # Streams where only the newest message is worth logging.
-LATEST_STREAMS = {
-    "stereo/frame": m.StereoFrame,
-    "flies/population": m.FlyPopulation,
-    "planner/field": m.HarmonicField,
-    "fusion/sonar_points": m.FlyPopulation,
-}
+LATEST_STREAMS = [S.STEREO_FRAME, S.FLIES_POPULATION, S.PLANNER_FIELD, S.FUSION_SONAR_POINTS]
 INBOX_SIZE = 20_000
 
 
@@ -155,18 +140,49 @@ class Inbox:
                 return
 
 
-def _poll_latched(node, inbox: Inbox, period: float, have_calibration: threading.Event) -> None:
-    """Helper thread: query the map (and the calibration until it came) every ``period`` seconds."""
-    while not node.stopping:
-        if not have_calibration.is_set():
-            cal = node.query_latest("stereo/calibration", m.StereoCalibrationMsg, timeout=1.0)
-            if cal is not None:
-                inbox.put("stereo/calibration", cal)
-        fmap = node.query_latest("slam/map", m.FlyMap, timeout=1.0)
-        if fmap is not None:
-            inbox.put("slam/map", fmap)
-        if not node.sleep(period):
-            return
+def subscribe_all(node, inbox: Inbox, map_period_s: float):
+    """Callback streams and liveliness into the inbox; (latest-value subscriptions, latched inputs)."""
+    for stream in CALLBACK_STREAMS:
+        name = "status" if stream is S.STATUS else stream.key
+        node.subscribe(stream, callback=lambda msg, name=name: inbox.put(name, msg))
+    node.watch_liveliness(S.HEALTH_PREFIX, lambda service, alive: inbox.put("health", (service, alive)))
+    latest = {stream.key: node.subscribe_latest(stream) for stream in LATEST_STREAMS}
+    latched = {S.STEREO_CALIBRATION.key: node.latched(S.STEREO_CALIBRATION),
+               S.SLAM_MAP.key: node.latched(S.SLAM_MAP, refresh_s=map_period_s)}
+    return latest, latched
+
+
+def log_batch(node, viz: RerunLogger, batch) -> None:
+    """Log (stream, message) pairs; a message that cannot be viewed is counted and logged, not fatal."""
+    for stream, msg in batch:
+        try:
+            if stream == "health":
+                viz.liveliness(*msg)
+            else:
+                viz.handle(stream, msg)
+            node.progress += 1
+        except ValueError as e:
+            node.counters.add("view_errors")
+            n = node.counters.get("view_errors")
+            if n <= 5 or n % 100 == 0:
+                log.warning("cannot view a message on %s: %s (%d so far)", stream, e, n)
+
+
+def close_sinks(rec, viz: RerunLogger, web) -> None:
+    try:
+        viz.finish()
+    finally:
+        try:
+            rec.flush(timeout_sec=10.0)
+        except RuntimeError as e:  # a live sink that died must not keep the file from closing
+            log.warning("flushing: %s", e)
+        rec.disconnect()
+        if web is not None:
+            web.terminate()
+            try:
+                web.wait(5)
+            except subprocess.TimeoutExpired:
+                web.kill()
 
 
 def body(node, args) -> int:
@@ -178,73 +194,24 @@ def body(node, args) -> int:
     viz = RerunLogger(rec, max_flies=args.max_flies, max_map_points=args.max_map_points,
                       jpeg_quality=args.jpeg_quality)
     web = start_web_viewer(args, grpc_uri) if grpc_uri else None
-    if grpc_uri:
-        log.info("live: rerun %s", grpc_uri)
-    if args.rrd:
-        log.info("recording to %s", args.rrd)
-
+    log.info("live: rerun %s; recording to %s", grpc_uri, args.rrd)
     inbox = Inbox(node)
-    have_calibration = threading.Event()
-    for stream, schema in CALLBACK_STREAMS.items():
-        name = "status" if stream == "status/*" else stream
-        node.subscribe(stream, schema, lambda msg, name=name: inbox.put(name, msg))
-    latest = {stream: node.subscribe_latest(stream, schema) for stream, schema in LATEST_STREAMS.items()}
-
-    health_prefix = node.key("health/")
-
-    def on_liveliness(sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        if key.startswith(health_prefix):
-            inbox.put("health", (key[len(health_prefix):], sample.kind == zenoh.SampleKind.PUT))
-
-    alive_sub = node.session.liveliness().declare_subscriber(node.key("health/*"), on_liveliness, history=True)
-    poller = threading.Thread(target=_poll_latched, args=(node, inbox, args.map_period_s, have_calibration),
-                              name="bridge-latched", daemon=True)
-    poller.start()
-
-    period = 1.0 / args.image_hz
-    errors = 0
+    latest, latched = subscribe_all(node, inbox, args.map_period_s)
     try:
         while True:
             t0 = time.monotonic()
             last_round = node.stopping  # one more round after the stop request drains what arrived
             node.rates["inbox_backlog"] = float(inbox.size())
             batch = list(inbox.drain())
+            batch += [(stream, msg) for stream, sub in latched.items() if (msg := sub.take()) is not None]
             batch += [(stream, msg) for stream, sub in latest.items() if (msg := sub.take()) is not None]
-            for stream, msg in batch:
-                try:
-                    if stream == "health":
-                        viz.liveliness(*msg)
-                    else:
-                        viz.handle(stream, msg)
-                        if stream == "stereo/calibration":
-                            have_calibration.set()
-                    node.progress += 1
-                except ValueError as e:  # a message that cannot be viewed: count it, keep going
-                    errors += 1
-                    node.counters.add("view_errors")
-                    if errors <= 5 or errors % 100 == 0:
-                        log.warning("cannot view a message on %s: %s (%d so far)", stream, e, errors)
+            log_batch(node, viz, batch)
             if last_round:
                 break
-            node.sleep(max(0.0, period - (time.monotonic() - t0)))
+            node.sleep(max(0.0, 1.0 / args.image_hz - (time.monotonic() - t0)))
     finally:
-        try:
-            viz.finish()
-        finally:
-            alive_sub.undeclare()
-            try:
-                rec.flush(timeout_sec=10.0)
-            except RuntimeError as e:  # a live sink that died must not keep the file from closing
-                log.warning("flushing: %s", e)
-            rec.disconnect()
-            if web is not None:
-                web.terminate()
-                try:
-                    web.wait(5)
-                except subprocess.TimeoutExpired:
-                    web.kill()
-            log.info("bridge stopped after logging %d messages", node.progress)
+        close_sinks(rec, viz, web)
+        log.info("bridge stopped after logging %d messages", node.progress)
     return 0
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common import streams as S
 from common.camera import CalibrationError, StereoCalibration
 from common.images import COMPRESSED_ENCODINGS, RAW_ENCODINGS, make_frame
 from common.messages import StereoFrame, calibration_to_msg
@@ -177,8 +178,8 @@ def build_parser():
 
 def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: float | None,
                  calibration_period: float) -> int:
-    frames = node.publisher("stereo/frame")
-    calib_pub = node.publisher("stereo/calibration", latched=True)
+    frames = node.publisher(S.STEREO_FRAME)
+    calib_pub = node.publisher(S.STEREO_CALIBRATION)
     period = 1.0 / fps if fps and fps > 0 else 0.0
     next_due = time.monotonic()
     next_calib = 0.0

@@ -18,7 +18,7 @@ from common import messages as m
 from common import streams as S
 from common.config_args import add_config_arguments
 from common.fly import EvolverConfig
-from common.fly.core import EvolverCore, EvolverServiceConfig
+from common.fly.core import EvolverCore, EvolverServiceConfig, FrameResult
 from services.base import config_or_exit, run_service, service_parser
 
 log = logging.getLogger("flyslam.evolver")
@@ -58,20 +58,9 @@ def body(node, args) -> int:
         if frame is not None:
             if calibration.get() is not None:
                 core.on_calibration(calibration.get())
-            result = core.on_frame(frame)
-            if result.population is None:
-                node.counters.add(_COUNTER.get(result.reason.split(":")[0], "bad_frames"))
-                log.log(logging.DEBUG if result.reason == "no calibration" else logging.WARNING,
-                        "frame %d: %s", frame.header.seq, result.reason)
-                continue
-            out.publish(result.population)
-            last_publish = time.monotonic()
-            node.progress += 1
-            node.counters.add("frames_without_odometry", int(result.without_odometry))
-            node.rates.update(frames_skipped=float(frames.skipped), settle_generations=float(result.generations))
-            if trace is not None:
-                result.trace.published_ns = time.monotonic_ns()
-                trace.publish(result.trace)
+            if publish_frame(node, core.on_frame(frame), frame, out, trace):
+                last_publish = time.monotonic()
+                node.rates["frames_skipped"] = float(frames.skipped)
         elif not core.has_population:
             node.sleep(0.005)
         else:   # between frames: evolve with a duty cycle, republish at the configured rate
@@ -88,6 +77,23 @@ def body(node, args) -> int:
 
 _COUNTER = {"no calibration": "frames_without_calibration", "bad calibration": "bad_calibration",
             "bad frame": "bad_frames"}
+
+
+def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -> bool:
+    """Publish a frame's population (and trace); count and log a refused frame. True when published."""
+    if result.population is None:
+        node.counters.add(_COUNTER.get(result.reason.split(":")[0], "bad_frames"))
+        log.log(logging.DEBUG if result.reason == "no calibration" else logging.WARNING,
+                "frame %d: %s", frame.header.seq, result.reason)
+        return False
+    out.publish(result.population)
+    node.progress += 1
+    node.counters.add("frames_without_odometry", int(result.without_odometry))
+    node.rates["settle_generations"] = float(result.generations)
+    if trace is not None:
+        result.trace.published_ns = time.monotonic_ns()
+        trace.publish(result.trace)
+    return True
 
 
 def main(argv=None) -> int:

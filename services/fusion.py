@@ -83,53 +83,61 @@ def recover(node, core: FusionCore, timeout: float) -> None:
         log.info("no previous fusion/odom on the bus: starting at the odom origin")
 
 
-def body(node, args) -> int:
-    run = config_or_exit(FusionServiceConfig, args)
-    core = FusionCore(config_or_exit(OdometryModel, args, rename=ODOMETRY_RENAME),
-                      config_or_exit(FilterConfig, args, only=FILTER_FLAGS, rename=FILTER_RENAME))
-    lock = threading.Lock()
-    pubs = {s: node.publisher(s) for s in (S.FUSION_ODOM, S.FUSION_POSE, S.FUSION_SONAR, S.FUSION_SONAR_POINTS)}
-    recover(node, core, run.recover_timeout)
+class FusionHandlers:
+    """The subscriptions' callbacks: FusionCore under one lock, its outputs published, problems counted."""
 
-    def on_wheels(msg: m.WheelOdometry) -> None:
-        with lock:
-            odom, pose = core.on_odometry(msg)
-            step = core.last_step
-            pubs[S.FUSION_ODOM].publish(odom)
-            pubs[S.FUSION_POSE].publish(pose)
+    def __init__(self, node, core: FusionCore, run: FusionServiceConfig):
+        self.node, self.core, self.run = node, core, run
+        self.lock = threading.Lock()
+        self.pubs = {s: node.publisher(s) for s in (S.FUSION_ODOM, S.FUSION_POSE, S.FUSION_SONAR,
+                                                     S.FUSION_SONAR_POINTS)}
+
+    def on_wheels(self, msg: m.WheelOdometry) -> None:
+        with self.lock:
+            odom, pose = self.core.on_odometry(msg)
+            step = self.core.last_step
+            self.pubs[S.FUSION_ODOM].publish(odom)
+            self.pubs[S.FUSION_POSE].publish(pose)
         if step.ok:
-            node.progress += 1
+            self.node.progress += 1
             if step.note.startswith("resynchronised"):
-                node.counters.add("odometry_resynchronised")
+                self.node.counters.add("odometry_resynchronised")
                 log.warning("odometry %s", step.note)
         else:
-            node.counters.add("odometry_flagged")
-            node.counters.add(f"odometry_flagged_{step.kind}")
+            self.node.counters.add("odometry_flagged")
+            self.node.counters.add(f"odometry_flagged_{step.kind}")
             log.warning("odometry reading %d flagged: %s", msg.header.seq, step.flag)
 
-    def on_correction(handler, what: str):
+    def correction(self, handler, what: str):
         def on_msg(msg) -> None:
-            with lock:
+            with self.lock:
                 result = handler(msg)
-            node.counters.add(f"{what}_{'fused' if result.accepted else 'refused'}")
+            self.node.counters.add(f"{what}_{'fused' if result.accepted else 'refused'}")
             if not result.accepted:
                 log.warning("%s not fused: %s", what, result.reason)
         return on_msg
 
-    def on_sonar(msg: m.SonarScan) -> None:
+    def on_sonar(self, msg: m.SonarScan) -> None:
         try:
-            scan, points = sonar_outputs(msg, run)
+            scan, points = sonar_outputs(msg, self.run)
         except SonarScanError as e:
-            node.counters.add("sonar_refused")
+            self.node.counters.add("sonar_refused")
             log.warning("%s", e)
             return
-        pubs[S.FUSION_SONAR].publish(scan)
-        pubs[S.FUSION_SONAR_POINTS].publish(points)
+        self.pubs[S.FUSION_SONAR].publish(scan)
+        self.pubs[S.FUSION_SONAR_POINTS].publish(points)
 
-    node.subscribe(S.ODOM_WHEELS, callback=on_wheels)
-    node.subscribe(S.SLAM_POSE, callback=on_correction(core.on_slam_pose, "slam_pose"))
-    node.subscribe(S.SLAM_MAP_TO_ODOM, callback=on_correction(core.on_map_to_odom, "map_to_odom"))
-    node.subscribe(S.SONAR_SCAN, callback=on_sonar)
+
+def body(node, args) -> int:
+    run = config_or_exit(FusionServiceConfig, args)
+    core = FusionCore(config_or_exit(OdometryModel, args, rename=ODOMETRY_RENAME),
+                      config_or_exit(FilterConfig, args, only=FILTER_FLAGS, rename=FILTER_RENAME))
+    handlers = FusionHandlers(node, core, run)
+    recover(node, core, run.recover_timeout)
+    node.subscribe(S.ODOM_WHEELS, callback=handlers.on_wheels)
+    node.subscribe(S.SLAM_POSE, callback=handlers.correction(core.on_slam_pose, "slam_pose"))
+    node.subscribe(S.SLAM_MAP_TO_ODOM, callback=handlers.correction(core.on_map_to_odom, "map_to_odom"))
+    node.subscribe(S.SONAR_SCAN, callback=handlers.on_sonar)
     while node.sleep(0.5):
         pass
     return 0

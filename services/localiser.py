@@ -17,7 +17,7 @@ from common import messages as m
 from common import streams as S
 from common.config_args import add_config_arguments
 from common.slam import LocaliserConfig
-from common.slam.core import LocaliserCore, LocaliserServiceConfig
+from common.slam.core import LocaliserCore, LocaliserOutput, LocaliserServiceConfig
 from common.trajectory import write_tum
 from services.base import config_or_exit, run_service, service_parser
 
@@ -52,7 +52,7 @@ def body(node, args) -> int:
     calibration = node.latched(S.STEREO_CALIBRATION)
     node.queryable(S.SLAM_MAP, serve_map)
     populations = node.subscribe_latest(S.FLIES_POPULATION)
-    pose_pub, tf_pub = node.publisher(S.SLAM_POSE), node.publisher(S.SLAM_MAP_TO_ODOM)
+    pubs = node.publisher(S.SLAM_POSE), node.publisher(S.SLAM_MAP_TO_ODOM)
     last_tum = time.monotonic()
     while not node.stopping:
         pop = populations.wait(timeout=0.5)
@@ -62,18 +62,7 @@ def body(node, args) -> int:
             if not core.has_calibration and calibration.get() is not None:
                 core.on_calibration(calibration.get())
             out = core.on_population(pop)
-        if out.estimate is None:
-            if out.reason != "republished":
-                node.counters.add("populations_without_calibration" if out.reason == "no calibration"
-                                  else "bad_populations")
-                log.log(logging.DEBUG if out.reason == "no calibration" else logging.WARNING,
-                        "population %d: %s", pop.source_seq, out.reason)
-            continue
-        node.counters.add("registrations_ok" if out.estimate.registered else "registrations_rejected")
-        node.counters.add("keyframes", int(out.estimate.keyframe_added))
-        pose_pub.publish(out.pose)
-        tf_pub.publish(out.map_to_odom)
-        node.progress += 1
+        publish(node, out, pop, *pubs)
         node.rates["keyframes"] = float(len(core.keyframes))
         if run.tum and time.monotonic() - last_tum > run.tum_period_s:
             write_tum(run.tum, *core.trajectory())
@@ -82,6 +71,22 @@ def body(node, args) -> int:
         write_tum(run.tum, *core.trajectory())
         log.info("wrote %d poses to %s", len(core.stamps), run.tum)
     return 0
+
+
+def publish(node, out: LocaliserOutput, pop: m.FlyPopulation, pose_pub, tf_pub) -> None:
+    """Publish a localised population's pose and map→odom; count and log a refused one."""
+    if out.estimate is None:
+        if out.reason != "republished":
+            node.counters.add("populations_without_calibration" if out.reason == "no calibration"
+                              else "bad_populations")
+            log.log(logging.DEBUG if out.reason == "no calibration" else logging.WARNING,
+                    "population %d: %s", pop.source_seq, out.reason)
+        return
+    node.counters.add("registrations_ok" if out.estimate.registered else "registrations_rejected")
+    node.counters.add("keyframes", int(out.estimate.keyframe_added))
+    pose_pub.publish(out.pose)
+    tf_pub.publish(out.map_to_odom)
+    node.progress += 1
 
 
 def main(argv=None) -> int:

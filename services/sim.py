@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from common import messages as m
+from common import streams as S
 from common.sim import Simulator, load_scenario
 from common.sim.bus_messages import camera_messages, odometry_message, sonar_message, target_message
 from common.sim.scenario import ScenarioError, scenario_path
@@ -84,6 +85,37 @@ class CommandInbox:
         return cmd.linear_mps, cmd.angular_radps
 
 
+class TargetHold:
+    """Ends a closed-loop run once the planner has said 'target reached' for ``seconds`` of simulated time."""
+
+    def __init__(self, seconds: float | None):
+        self.seconds = seconds
+        self.since_ns: int | None = None
+
+    def reached(self, reason: str | None, sim_time_ns: int) -> bool:
+        if self.seconds is None or reason != "target reached":
+            self.since_ns = None
+            return False
+        self.since_ns = sim_time_ns if self.since_ns is None else self.since_ns
+        return (sim_time_ns - self.since_ns) * 1e-9 >= self.seconds
+
+
+def publish_events(node, pubs: dict, sim: Simulator, events, t0_ns: int, args, truth: list) -> None:
+    """Publish one batch of simulator events stamped with wall-clock start + simulated time."""
+    for ev in events:
+        stamp = t0_ns + ev.stamp_ns
+        if isinstance(ev, OdometryReading):
+            pubs[S.ODOM_WHEELS].publish(odometry_message(ev, stamp))
+        elif isinstance(ev, SonarReading):
+            pubs[S.SONAR_SCAN].publish(sonar_message(ev, stamp))
+        elif isinstance(ev, CameraDue):
+            images = sim.render(ev.stamp_ns)
+            node.progress += 1
+            for stream, msg in camera_messages(images, node.progress, stamp, args.encoding, args.depth).items():
+                pubs[stream].publish(msg)
+            truth.append((stamp, images.T_map_base))
+
+
 def body(node, args) -> int:
     try:
         scenario = _resolve_scenario(args.scenario)
@@ -91,75 +123,41 @@ def body(node, args) -> int:
         log.error("%s", e)
         return 2
     sim = Simulator(scenario, seed=args.seed, width=args.width, height=args.height, camera_rate_hz=args.fps)
-    calib = sim.calibration
-    pubs = {name: node.publisher(name) for name in ("stereo/frame", "odom/wheels", "sonar/scan", "truth/pose", "truth/depth")}
-    calib_pub = node.publisher("stereo/calibration", latched=True)
-    target_pub = node.publisher("planner/target", latched=True)
-    inbox = CommandInbox()
+    pubs = {s: node.publisher(s) for s in (S.ODOM_WHEELS, S.SONAR_SCAN, S.STEREO_CALIBRATION, S.PLANNER_TARGET)}
+    pubs.update({s.key: node.publisher(s) for s in (S.STEREO_FRAME, S.TRUTH_POSE, S.TRUTH_DEPTH)})
+    inbox, hold = CommandInbox(), TargetHold(args.end_on_target)
     if args.closed_loop:
-        node.subscribe("planner/cmd_vel", m.VelocityCommand, inbox.put)
+        node.subscribe(S.PLANNER_CMD_VEL, callback=inbox.put)
         sim.set_command(0.0, 0.0)
-
-    t0_ns = time.time_ns()
-    t0_wall = time.monotonic()
-    frame_seq = 0
-    truth_stamps, truth_poses = [], []
-    last_calib = -1e9
-
-    def publish_static(now_ns: int) -> None:
-        calib_pub.publish(m.calibration_to_msg(calib, 0, now_ns))
-        target = target_message(scenario, now_ns)
-        if target is not None:
-            target_pub.publish(target)
-
-    step = 0.01
-    reached_since_ns = None     # simulated time since which the planner has said 'target reached'
+    t0_ns, t0_wall, last_static = time.time_ns(), time.monotonic(), -1e9
+    truth: list = []
     while not node.stopping:
         if args.duration is not None and sim.time_ns * 1e-9 >= args.duration:
             break
         if not args.closed_loop and sim.finished:
             log.info("scripted path finished after %.1f s", sim.time_ns * 1e-9)
             break
-        if time.monotonic() - last_calib > 2.0:
-            publish_static(t0_ns + sim.time_ns)
-            last_calib = time.monotonic()
+        if time.monotonic() - last_static > 2.0:
+            pubs[S.STEREO_CALIBRATION].publish(m.calibration_to_msg(sim.calibration, 0, t0_ns + sim.time_ns))
+            if (target := target_message(scenario, t0_ns + sim.time_ns)) is not None:
+                pubs[S.PLANNER_TARGET].publish(target)
+            last_static = time.monotonic()
         if args.closed_loop:
             sim.set_command(*inbox.get(args.cmd_timeout))
-            if args.end_on_target is not None:
-                if inbox.reason(args.cmd_timeout) == "target reached":
-                    reached_since_ns = sim.time_ns if reached_since_ns is None else reached_since_ns
-                    if (sim.time_ns - reached_since_ns) * 1e-9 >= args.end_on_target:
-                        log.info("target reached at %.1f s; ending", reached_since_ns * 1e-9)
-                        break
-                else:
-                    reached_since_ns = None
-        events = sim.advance(step)
-        # Real-time pacing: publish each batch when the wall clock reaches the simulated time.
-        if args.rate > 0:
-            due = t0_wall + sim.time_ns * 1e-9 / args.rate
-            delay = due - time.monotonic()
-            if delay > 0 and not node.sleep(delay):
+            if hold.reached(inbox.reason(args.cmd_timeout), sim.time_ns):
+                log.info("target reached at %.1f s; ending", hold.since_ns * 1e-9)
                 break
-        for ev in events:
-            stamp = t0_ns + ev.stamp_ns
-            if isinstance(ev, OdometryReading):
-                pubs["odom/wheels"].publish(odometry_message(ev, stamp))
-            elif isinstance(ev, SonarReading):
-                pubs["sonar/scan"].publish(sonar_message(ev, stamp))
-            elif isinstance(ev, CameraDue):
-                images = sim.render(ev.stamp_ns)
-                frame_seq += 1
-                for stream, msg in camera_messages(images, frame_seq, stamp, args.encoding, args.depth).items():
-                    pubs[stream].publish(msg)
-                truth_stamps.append(stamp)
-                truth_poses.append(images.T_map_base)
-                node.progress += 1
-        node.rates["sim_time_s"] = sim.time_ns * 1e-9
-        node.rates["clearance_m"] = sim.clearance()
-    if args.truth_tum and truth_stamps:
-        write_tum(args.truth_tum, np.array(truth_stamps, np.int64), np.array(truth_poses))
-        log.info("wrote ground truth (%d poses) to %s", len(truth_stamps), args.truth_tum)
-    log.info("published %d frames; %d collisions", frame_seq, sim.collisions)
+        events = sim.advance(0.01)
+        # Real-time pacing: publish each batch when the wall clock reaches the simulated time.
+        delay = t0_wall + sim.time_ns * 1e-9 / args.rate - time.monotonic() if args.rate > 0 else 0.0
+        if delay > 0 and not node.sleep(delay):
+            break
+        publish_events(node, pubs, sim, events, t0_ns, args, truth)
+        node.rates.update(sim_time_s=sim.time_ns * 1e-9, clearance_m=sim.clearance())
+    if args.truth_tum and truth:
+        write_tum(args.truth_tum, np.array([t for t, _ in truth], np.int64), np.array([T for _, T in truth]))
+        log.info("wrote ground truth (%d poses) to %s", len(truth), args.truth_tum)
+    log.info("published %d frames; %d collisions", node.progress, sim.collisions)
     return 0
 
 
