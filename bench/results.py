@@ -5,7 +5,8 @@
 
 ``save`` passes the bench's output through, parses its last stdout line as one JSON object and writes
 it to ``docs/results/NAME.json`` with ``date`` (UTC, ISO 8601), ``load_avg`` (the 1/5/15-minute load
-averages when the bench ended), ``load_avg_before`` (when it started) and ``command``, then renders.
+averages when the bench ended), ``load_avg_before`` (when it started), ``command`` and ``commit`` (the
+code measured: ``-dirty`` when common/, services/ or bench/ had uncommitted changes), then renders.
 ``render`` writes one table row per stored bench: its key figures, the date and the load it ran at.
 A bench that fails or prints no JSON stores nothing and exits non-zero.
 """
@@ -112,7 +113,7 @@ def key_figures(name: str, result: dict) -> tuple[str, str]:
             value = value / 1e6
         cells.append(f"{label} {_num(value)}{' ' + unit if unit else ''}")
     if not keys:
-        skip = {"date", "load_avg", "load_avg_before", "command"}
+        skip = {"date", "load_avg", "load_avg_before", "command", "commit"}
         cells = [f"{k} {_num(v)}" for k, v in result.items()
                  if k not in skip and isinstance(v, (int, float)) and not isinstance(v, bool)][:6]
     return what, ", ".join(cells) or "(no figures)"
@@ -128,8 +129,8 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
         "`python bench/results.py save <bench>`. Wall-clock figures depend on how busy the machine was:",
         "the load column gives the 1-minute load average when the bench started → ended.",
         "",
-        "| bench | what | figures | date (UTC) | load |",
-        "|---|---|---|---|---|",
+        "| bench | what | figures | date (UTC) | load | commit |",
+        "|---|---|---|---|---|---|",
     ]
     for path in sorted(results_dir.glob("*.json")):
         name = path.stem
@@ -142,7 +143,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
         before = result.get("load_avg_before")
         load_cell = f"{before[0]:.1f} → {load[0]:.1f}" if before else f"{load[0]:.1f}"
         date = str(result.get("date", "?"))[:16].replace("T", " ")
-        lines.append(f"| `{name}` | {what} | {figures} | {date} | {load_cell} |")
+        lines.append(f"| `{name}` | {what} | {figures} | {date} | {load_cell} | {result.get('commit') or '?'} |")
     lines += ["", "The full JSON of each run, with every figure the bench reports, is in `docs/results/`.", ""]
     return "\n".join(lines)
 
@@ -156,6 +157,20 @@ def last_json_line(stdout: str) -> dict:
     if not isinstance(result, dict):
         raise ValueError("the last stdout line is JSON but not an object")
     return result
+
+
+def source_commit() -> str | None:
+    """The checked-out commit, with "-dirty" when tracked code (common/, services/, bench/ but this
+    script) has uncommitted changes, so a figure can be traced to the code it measured; None outside git."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "common",
+                                "services", "bench", ":!bench/results.py"], cwd=ROOT, capture_output=True, text=True,
+                               check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("-dirty" if dirty else "")
 
 
 def save(name: str, bench_args: list[str]) -> int:
@@ -180,6 +195,7 @@ def save(name: str, bench_args: list[str]) -> int:
     result["load_avg"] = [round(x, 2) for x in after]
     result["load_avg_before"] = [round(x, 2) for x in before]
     result["command"] = shlex.join(["python", f"bench/{name}.py", "--json", *bench_args])
+    result["commit"] = source_commit()
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     (RESULTS_DIR / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
     RESULTS_MD.write_text(render())
