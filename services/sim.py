@@ -44,8 +44,7 @@ def build_parser():
     p.add_argument("--closed-loop", action="store_true", help="drive by planner/cmd_vel instead of the scripted path")
     p.add_argument("--cmd-timeout", type=float, default=1.0, help="closed loop: stop when commands are this old")
     p.add_argument("--end-on-target", type=float, default=None, metavar="S",
-                   help="closed loop: end (exit 0) once the planner has said 'target reached' for S simulated "
-                        "seconds (with ends_run in a launch file, this ends the run)")
+                   help="closed loop: exit 0 once the planner has said 'target reached' for S simulated seconds")
     p.add_argument("--depth", action="store_true", help="also publish the ground-truth depth map")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds to run (default: until the path ends)")
     p.add_argument("--truth-tum", default=None, help="write the ground-truth trajectory (TUM) here on exit")
