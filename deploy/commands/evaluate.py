@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.config_args import add_config_arguments, config_from_args
+from common.fly import EvolverConfig
 from common.lockstep import run_lockstep
 from common.recording import RecordingError, RecordingReader
 from common.trajectory import write_tum
@@ -70,20 +72,20 @@ def main(argv=None) -> int:
     p.add_argument("recording", help="MCAP recording with stereo frames and calibration (and truth/pose)")
     p.add_argument("--out", required=True, help="folder for trajectories, metrics.json and the plot")
     p.add_argument("--generations", type=int, default=30, help="evolver generations per frame")
-    p.add_argument("--population", type=int, default=5000)
+    add_config_arguments(p, EvolverConfig, only=["population"], helps={"population": "number of flies"})
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--localiser", action="append", default=[], metavar="FIELD=VALUE",
-                   help="override a LocaliserConfig field (common/slam.py), e.g. --localiser keyframe_distance_m=1.5")
+                   help="override a LocaliserConfig field (common/slam/localiser.py), e.g. --localiser keyframe_distance_m=1.5")
     args = p.parse_args(argv)
     try:
         reader = RecordingReader(args.recording)
     except RecordingError as e:
         print(f"flyslam eval: {e}", file=sys.stderr)
         return 2
-    from common.fly import EvolverConfig
     try:
         localiser_config = parse_overrides(args.localiser)
+        evolver_config = config_from_args(EvolverConfig, args, only=["population"])
     except ValueError as e:
         print(f"flyslam eval: {e}", file=sys.stderr)
         return 2
@@ -96,7 +98,7 @@ def main(argv=None) -> int:
         bar.update(n, f"frames, last: {status[:50]}")
 
     result = run_lockstep(reader.messages(), generations_per_frame=args.generations, seed=args.seed,
-                          evolver_config=EvolverConfig(population=args.population),
+                          evolver_config=evolver_config,
                           localiser_config=localiser_config,
                           max_frames=args.max_frames, progress=progress)
     bar.done()
