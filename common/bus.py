@@ -9,6 +9,9 @@
 - Sensor streams use :meth:`Node.subscribe_latest` (a Zenoh RingChannel of depth 1): a slow consumer
   gets the newest message and the skipped ones are counted from sequence gaps, never queued.
 - Streams where every message matters (odometry) use :meth:`Node.subscribe` with a callback.
+- Latched inputs (calibration, target, the map) use :meth:`Node.latched`; a service answers queries with
+  :meth:`Node.queryable` and watches other services' liveliness with :meth:`Node.watch_liveliness`.
+- Every method taking a stream accepts a :class:`common.streams.Stream` (key, schema, latched, reliable).
 
 A malformed payload or an unknown major version is logged (rate-limited) and counted as ``rejected``;
 it never raises out of a subscription.

@@ -48,5 +48,3 @@ PLANNER_FIELD = Stream("planner/field", m.HarmonicField)
 # Health (every Node)
 STATUS = Stream("status/*", m.Heartbeat)
 HEALTH_PREFIX = "health/"
-
-ALL = [v for v in list(globals().values()) if isinstance(v, Stream)]
