@@ -3,11 +3,15 @@
 Figures (no pass/fail; noisy on a shared machine):
 - fly_evals_per_s: fitness evaluations per second of the numba kernel (7×7 window, 3 colours, 640×480
   images, 5,000 flies, all cores), on a converged population in the order the evolver keeps it (sorted by
-  image cell); ``fly_evals_per_s_random_order`` is the same flies shuffled;
+  image cell); ``fly_evals_per_s_random_order`` is the same flies shuffled; ``fly_evals_per_s_serial``
+  the calling-thread kernel on the sorted flies (what the evolver uses for batches this size);
 - naive_numpy_fly_evals_per_s: bench/naive_fly_fitness.py (numpy fancy indexing, same window, same
   normaliser, same sub-pixel sampling) on the same flies, same run; the two are checked to agree;
-- generations_per_s: steady state, 5,000 flies on the Middlebury motorcycle pair (default config: the
-  evolver picks the serial or parallel kernel by measured cost, see common/fly/threads.py).  In steady-state mode a
+- generations_per_s: steady state, 5,000 flies on the Middlebury motorcycle pair (default config: batches
+  this size use the serial kernel, see common/fly/threads.py), best of bursts of 5; ``generation_ms`` and
+  ``generation_cpu_ms``: median wall-clock and process CPU time of one generation over the same second
+  (wall minus CPU is time spent waiting for a core: on a shared machine the rate follows the load, the
+  CPU time does not).  In steady-state mode a
   generation is N = population-size offspring, each made, evaluated and inserted (or rejected) — made in
   one batch: parents drawn for all N, children made and evaluated together, then inserted one by one;
 - sgbm_time_s: cv2.StereoSGBM (3-way, 64 disparities ⊇ the pair's 7–60 px) on the motorcycle pair;
@@ -95,11 +99,12 @@ def evaluation_rates(calib, left, right, sizes):
         fr, sub, vert = ev.frame, ev.config.subpixel, ev.config.subpixel_vertical
         out[n] = {
             "sorted": rate(lambda: image_fitness(fr, calib, pos, sub, vert), n),
+            "serial": rate(lambda: image_fitness(fr, calib, pos, sub, vert, parallel=False), n),
             "random": rate(lambda: image_fitness(fr, calib, shuffled, sub, vert), n),
             "frame": fr, "positions": pos,
         }
         log(f"  {n:>6} flies: {out[n]['sorted'] / 1e6:6.2f} M evals/s (evolver order), "
-            f"{out[n]['random'] / 1e6:6.2f} M evals/s (shuffled)")
+            f"{out[n]['random'] / 1e6:6.2f} M evals/s (shuffled), {out[n]['serial'] / 1e6:6.2f} M evals/s (serial)")
     return out
 
 
@@ -181,7 +186,16 @@ def main(argv=None) -> int:
     ev.set_images(pair.left, pair.right)
     ev.step(30)   # measure on a converging population, not only on the random start
     gens = rate(lambda: ev.step(5), 5, min_time=1.0)
-    log(f"  {gens:.1f} generations/s ({gens * 5000 / 1e6:.2f} M offspring/s)")
+    wall, cpu = [], []
+    t_end = time.perf_counter() + 1.0
+    while time.perf_counter() < t_end:
+        w0, c0 = time.perf_counter(), time.process_time()
+        ev.step(1)
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    gen_ms, gen_cpu_ms = 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
+    log(f"  {gens:.1f} generations/s ({gens * 5000 / 1e6:.2f} M offspring/s); one generation {gen_ms:.2f} ms "
+        f"wall, {gen_cpu_ms:.2f} ms CPU (medians)")
 
     # The machine is shared and its load changes by the second: SGBM and the flies are timed back to
     # back, RUNS times, and each run's flies are read at that run's own SGBM time; medians are reported.
@@ -209,10 +223,13 @@ def main(argv=None) -> int:
     res = {
         "fly_evals_per_s": round(r5["sorted"]),
         "fly_evals_per_s_random_order": round(r5["random"]),
+        "fly_evals_per_s_serial": round(r5["serial"]),
         "naive_numpy_fly_evals_per_s": round(naive),
         "speedup_vs_naive": round(r5["sorted"] / naive, 1),
         "kernel_agrees_with_naive": agree,
         "generations_per_s": round(gens, 2),
+        "generation_ms": round(gen_ms, 3),
+        "generation_cpu_ms": round(gen_cpu_ms, 3),
         "generation_definition": "steady state: N=5000 offspring made, evaluated and inserted or rejected",
         "sgbm_time_s": round(sgbm_s, 4),
         "sgbm_bad1": round(sgbm_bad1, 4),
@@ -233,7 +250,8 @@ def main(argv=None) -> int:
     log(f"  fitness: {res['fly_evals_per_s'] / 1e6:.2f} M evals/s (shuffled {r5['random'] / 1e6:.2f}), "
         f"{res['speedup_vs_naive']}× naive numpy ({naive / 1e6:.3f} M/s)")
     log("  scaling: " + ", ".join(f"{k} flies {v / 1e6:.2f} M/s" for k, v in res["scaling"].items()))
-    log(f"  steady state: {gens:.1f} generations/s of 5,000 offspring")
+    log(f"  steady state: {gens:.1f} generations/s of 5,000 offspring; one generation {gen_ms:.2f} ms wall, "
+        f"{gen_cpu_ms:.2f} ms CPU")
     log(f"  SGBM {sgbm_s * 1e3:.1f} ms (good {1 - sgbm_bad1:.3f} of known pixels, {1 - sgbm_bad1_valid:.3f} where "
         f"it answered); flies: {res['inliers_at_sgbm_time']:.3f} "
         f"inliers at SGBM time, {res['inliers_at_1s']:.3f} at 1 s, 90 % after "
