@@ -202,13 +202,15 @@ def cpu_while_flowing(snapshots: list[tuple[float, int, dict[int, float]]], name
         return None, None
     i0 = flowing[0]
     i1 = next(k for k in flowing if snapshots[k][1] == snapshots[flowing[-1]][1])
-    (t0, f0, c0), (t1, f1, c1) = snapshots[i0], snapshots[i1]
+    (t0, f0, c0), (t1, f1, _) = snapshots[i0], snapshots[i1]
     if t1 <= t0 or f1 <= f0:
         return None, None
+    last: dict[int, float] = {}
+    for _, _, c in snapshots[i0:i1 + 1]:      # a process that ended (replay does) counts up to its last sample
+        last.update(c)
     cpu: dict[str, float] = {}
     for pid, first in c0.items():
-        if pid in c1:
-            cpu[names.get(pid, "?")] = cpu.get(names.get(pid, "?"), 0.0) + c1[pid] - first
+        cpu[names.get(pid, "?")] = cpu.get(names.get(pid, "?"), 0.0) + last[pid] - first
     cpu["total"] = sum(cpu.values())
     return ({k: round(100 * v / (t1 - t0), 1) for k, v in cpu.items()},
             {k: round(1000 * v / (f1 - f0), 2) for k, v in cpu.items()})
