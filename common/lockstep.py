@@ -2,8 +2,10 @@
 
 Live, the services run asynchronously and the evolver works on whatever frame is newest. For
 evaluation that is not reproducible, so ``flyslam eval`` drives the services' own cores
-(:class:`EvolverCore`, :class:`LocaliserCore`) in one process: every frame is used, the evolver gets a fixed number of generations per frame, odometry is
-read at each frame's stamp. Same recording + same seed → same trajectory.
+(:class:`EvolverCore`, :class:`LocaliserCore`) in one process: every frame is used, the evolver gets a
+fixed number of generations per frame, odometry is read at each frame's stamp. Same recording + same
+seed → same trajectory, to the bit with ``EvolverConfig(parallel=False)``; with ``parallel='auto'`` the
+kernel chosen by timing (common/fly/threads.py) can change the last bits of fitness, and so the result.
 
 Odometry: the wheel odometry's own integrated pose (``pose_xyyaw``) when the recording has it; image-only
 datasets (KITTI, EuRoC) run with the localiser's constant-velocity prediction instead.
@@ -11,7 +13,7 @@ datasets (KITTI, EuRoC) run with the localiser's constant-velocity prediction in
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable
 
 import numpy as np
@@ -55,7 +57,11 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
     res = LockstepResult()
     evolver = EvolverCore(evolver_config or EvolverConfig(), settle=generations_per_frame,
                           seed=seed, odometry=PoseBuffer(maxlen=100_000, max_extrapolation_ns=100_000_000))
-    localiser = LocaliserCore(localiser_config, seed=seed)
+    localiser_config = localiser_config or LocaliserConfig()
+    localiser = None            # made at the first frame, once it is known whether wheels are recorded
+    wheels = False
+    calibration = None
+    first_frame = False
     t0 = time.perf_counter()
     for rec in messages:
         stream = rec.key.split("/", 1)[-1]
@@ -67,22 +73,33 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             continue
         if stream == "stereo/calibration":
             evolver.on_calibration(msg)
-            localiser.on_calibration(msg)
+            calibration = msg
         elif stream == "odom/wheels" and msg.pose_xyyaw is not None:
+            wheels = True
             evolver.on_odometry(msg.header.stamp_ns, planar_pose(*msg.pose_xyyaw))
         elif stream == "truth/pose":
             res.truth_stamps.append(msg.header.stamp_ns)
             res.truth.append(m.transform_of(msg))
         elif stream == "stereo/frame":
+            if localiser is None:
+                localiser, first_frame = _start_localiser(localiser_config, wheels, seed, evolver), True
+            if calibration is not None and not localiser.has_calibration:
+                localiser.on_calibration(calibration)
             frame = evolver.on_frame(msg)
             if frame.population is None:
                 continue
+            if first_frame:      # the map starts from a converged population, as it does live
+                evolver.evolve(max(0, localiser.config.min_generations - evolver.generation))
+                frame.population = evolver.population(with_image=True)
+                first_frame = False
             out = localiser.on_population(frame.population)
             if out.estimate is None:
                 continue
+            if not wheels:       # visual-only: the localiser's own estimates move the flies
+                evolver.on_odometry(frame.population.header.stamp_ns, out.estimate.T_map_base)
             res.stamps.append(frame.population.header.stamp_ns)
             res.estimated.append(out.estimate.T_map_base)
-            res.odometry.append(frame.T_odom_base)
+            res.odometry.append(frame.T_odom_base if wheels else None)   # visual-only: no odometry of its own
             res.statuses.append(out.estimate.status)
             res.frames += 1
             if progress:
@@ -90,5 +107,14 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             if max_frames and res.frames >= max_frames:
                 break
     res.seconds = time.perf_counter() - t0
-    res.keyframes = len(localiser.keyframes)
+    res.keyframes = len(localiser.keyframes) if localiser is not None else 0
     return res
+
+
+def _start_localiser(config: LocaliserConfig, wheels: bool, seed: int, evolver: EvolverCore) -> LocaliserCore:
+    """The localiser for this recording: with wheel odometry as recorded, or visual-only (its own
+    constant-velocity prediction, fed back to the evolver as the motion that moves the flies)."""
+    if not wheels:
+        config = replace(config, odometry="visual")
+        evolver.odometry = PoseBuffer(maxlen=100_000, max_extrapolation_ns=1_000_000_000, extrapolate=True)
+    return LocaliserCore(config, seed=seed)
