@@ -113,8 +113,9 @@ class FusionHandlers:
             with self.lock:
                 result = handler(msg)
             self.node.counters.add(f"{what}_{'fused' if result.accepted else 'refused'}")
-            if not result.accepted:
-                log.warning("%s not fused: %s", what, result.reason)
+            if not result.accepted:   # a map->odom of the pose just fused is a duplicate, not a problem
+                log.log(logging.DEBUG if result.reason.startswith("duplicate") else logging.WARNING,
+                        "%s not fused: %s", what, result.reason)
         return on_msg
 
     def on_sonar(self, msg: m.SonarScan) -> None:
