@@ -34,6 +34,15 @@ def invert(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def orthonormalised(T: np.ndarray) -> np.ndarray:
+    """T with its rotation replaced by the nearest rotation matrix (SVD): chains of composed estimates
+    otherwise let rounding grow until a consumer's rigidity check refuses them."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=float, copy=True)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return out
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4×4 transform to an (N, 3) array of points; keeps the input dtype."""
     pts = np.asarray(points)

@@ -11,14 +11,19 @@ from collections import deque
 
 import numpy as np
 
-from common.geometry import so3_exp, so3_log
+from common.geometry import invert, so3_exp, so3_log
 
 
 class PoseBuffer:
-    def __init__(self, maxlen: int = 500, max_extrapolation_ns: int = 200_000_000):
+    """Poses by stamp. Outside the held span, within ``max_extrapolation_ns``, the nearest end is
+    returned, or with ``extrapolate=True`` the newest pose moved on at the velocity of the last two
+    (a constant-velocity prediction: what visual odometry, which only knows past frames, can offer)."""
+
+    def __init__(self, maxlen: int = 500, max_extrapolation_ns: int = 200_000_000, extrapolate: bool = False):
         self._stamps: deque[int] = deque(maxlen=maxlen)
         self._poses: deque[np.ndarray] = deque(maxlen=maxlen)
         self.max_extrapolation_ns = max_extrapolation_ns
+        self.extrapolate = extrapolate
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -46,7 +51,12 @@ class PoseBuffer:
         if stamp_ns <= stamps[0]:
             return self._poses[0].copy() if stamps[0] - stamp_ns <= self.max_extrapolation_ns else None
         if stamp_ns >= stamps[-1]:
-            return self._poses[-1].copy() if stamp_ns - stamps[-1] <= self.max_extrapolation_ns else None
+            if stamp_ns - stamps[-1] > self.max_extrapolation_ns:
+                return None
+            if not self.extrapolate or len(stamps) < 2 or stamp_ns == stamps[-1]:
+                return self._poses[-1].copy()
+            T0, T1 = self._poses[-2], self._poses[-1]
+            return T1 @ _scaled_motion(invert(T0) @ T1, (stamp_ns - stamps[-1]) / (stamps[-1] - stamps[-2]))
         i = bisect.bisect_right(stamps, stamp_ns)
         t0, t1 = stamps[i - 1], stamps[i]
         a = (stamp_ns - t0) / (t1 - t0)
@@ -55,3 +65,12 @@ class PoseBuffer:
         T[:3, 3] = (1 - a) * T0[:3, 3] + a * T1[:3, 3]
         T[:3, :3] = T0[:3, :3] @ so3_exp(a * so3_log(T0[:3, :3].T @ T1[:3, :3]))
         return T
+
+
+def _scaled_motion(rel: np.ndarray, a: float) -> np.ndarray:
+    """The body-frame motion ``rel`` carried on for ``a`` times as long (rotation along its geodesic,
+    translation scaled): the constant-velocity step."""
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(a * so3_log(rel[:3, :3]))
+    T[:3, 3] = a * rel[:3, 3]
+    return T

@@ -30,10 +30,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.geometry import invert, planar_from_transform, planar_pose, transform_points
+from common.geometry import invert, orthonormalised, planar_from_transform, planar_pose, so3_log, transform_points
 from common.registration import PopulationError, register_planar
 from common.registration.register import StereoModel
+from common.registration.photometric import pyramid
 from common.registration.weights import visible_mask
+from common.pose_buffer import _scaled_motion
+from common.slam.tracking import ReferenceView, photometric_fix, reference_view
 
 
 class LocaliserError(ValueError):
@@ -43,7 +46,9 @@ class LocaliserError(ValueError):
 @dataclass
 class LocaliserConfig:
     keep_fraction: float = 0.7          # fittest fraction of the population used
-    max_depth_m: float = 8.0            # flies farther than this (camera z) are too uncertain to use
+    # Flies farther than this (camera z) are too uncertain for δ; None: where the stereo depth error of
+    # a 0.5 px disparity error reaches 15 % of the depth, 0.3·f·B (8.2 m on the simulated rig, 116 m on KITTI's).
+    max_depth_m: float | None = None
     min_height_m: float = 0.05          # drop flies on the floor: a plane under a planar search is flat
     max_height_m: float = 3.0
     voxel_m: float = 0.04               # keyframe points are thinned to one per voxel
@@ -101,6 +106,17 @@ class LocaliserConfig:
     # registrations (~45 ms each).  Every this many frames the full window is tried again.
     tracking_recheck_pinned: int = 10
     fallback_half_fov_rad: float = np.deg2rad(35.0)   # view cone when there is no calibration
+    # 'wheels': T_odom_base predicts each pose; 'visual': no wheels, a constant-velocity model of the
+    # localiser's own estimates predicts it (T_odom_base is then ignored, map and odom coincide).
+    odometry: str = "wheels"
+    photometric: bool = True            # refine on the flies' image neighbourhoods when images come along
+    photometric_flies: int = 2000       # fittest flies a keyframe keeps for photometric tracking
+    photometric_levels: int = 4         # image pyramid levels (the start may be ~2^levels px off)
+    photometric_min_inliers: float = 0.5   # share of neighbourhoods within the robust threshold to accept
+    # The tracking reference view is renewed once the camera has moved this fraction of the flies'
+    # median depth from it, or turned photometric_reference_angle_rad: the views stay alike.
+    photometric_reference_spacing: float = 0.1
+    photometric_reference_angle_rad: float = np.deg2rad(5.0)
 
 
 @dataclass
@@ -111,6 +127,7 @@ class Keyframe:
     points: np.ndarray        # (K, 3) float32 in this keyframe's base_link
     fitness: np.ndarray       # (K,) float32
     points_map: np.ndarray = None   # (K, 3) float32, the same points in the map frame (cached)
+    view: ReferenceView | None = None   # fittest flies and the image, for photometric tracking
 
     def __post_init__(self):
         if self.points_map is None:
@@ -133,7 +150,8 @@ class Estimate:
 class _Tracking:
     last_T_map_base: np.ndarray | None = None
     last_stamp: int | None = None
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))   # planar (vx, vy, ω) in the body
+    last_motion: np.ndarray | None = None      # body-frame motion over the last update
+    last_dt: float = 0.0
 
 
 def voxel_thin(points: np.ndarray, fitness: np.ndarray, voxel: float):
@@ -153,7 +171,12 @@ class FlyLocaliser:
         self.T_base_camera = np.asarray(T_base_camera, dtype=float)
         self.config = config or LocaliserConfig()
         self.calibration = calibration
-        self.stereo = (StereoModel(calibration, depth_range=(0.3, self.config.max_depth_m))
+        if self.config.odometry not in ("wheels", "visual"):
+            raise LocaliserError(f"odometry must be 'wheels' or 'visual', got {self.config.odometry!r}")
+        self.max_depth_m = self.config.max_depth_m
+        if self.max_depth_m is None:
+            self.max_depth_m = 0.3 * calibration.fx * calibration.baseline if calibration is not None else 8.0
+        self.stereo = (StereoModel(calibration, depth_range=(0.3, self.max_depth_m))
                        if calibration is not None and self.config.use_stereo_model else None)
         self._driven_since_fix = 0.0
         self._turned_since_fix = 0.0
@@ -172,6 +195,7 @@ class FlyLocaliser:
         self.keyframes: deque[Keyframe] = deque(maxlen=self.config.max_keyframes)
         self.T_map_odom = np.eye(4)
         self._track = _Tracking()
+        self._reference: ReferenceView | None = None      # photometric tracking reference (see _renew_reference)
         self._next_id = 0
         self._rng = np.random.default_rng(seed)
 
@@ -183,7 +207,7 @@ class FlyLocaliser:
         if P.ndim != 2 or P.shape[1] != 3 or f.shape != (len(P),):
             raise LocaliserError(f"population must be (N,3) with (N,) fitness, got {P.shape} and {f.shape}")
         c = self.config
-        ok = np.isfinite(P).all(axis=1) & np.isfinite(f) & (P[:, 2] > 0) & (P[:, 2] < c.max_depth_m)
+        ok = np.isfinite(P).all(axis=1) & np.isfinite(f) & (P[:, 2] > 0) & (P[:, 2] < self.max_depth_m)
         P, f = P[ok], f[ok]
         if len(P) == 0:
             return np.zeros((0, 3)), np.zeros(0)
@@ -215,10 +239,10 @@ class FlyLocaliser:
             return self._visible_cache[1]
         cam = transform_points(invert(T_map_base @ self.T_base_camera), pts)
         if self.calibration is not None:
-            seen = visible_mask(cam, self.calibration, (0.3, self.config.max_depth_m), margin=0.0)
+            seen = visible_mask(cam, self.calibration, (0.3, self.max_depth_m), margin=0.0)
         else:   # no calibration: a forward cone of the configured half-angle
             with np.errstate(divide="ignore", invalid="ignore"):
-                seen = ((cam[:, 2] > 0.3) & (cam[:, 2] < self.config.max_depth_m)
+                seen = ((cam[:, 2] > 0.3) & (cam[:, 2] < self.max_depth_m)
                         & (np.abs(cam[:, 0] / cam[:, 2]) < np.tan(self.config.fallback_half_fov_rad)))
         visible = np.bincount(owner[seen], minlength=len(self.keyframes))
         self._visible_cache = (key, visible)
@@ -266,10 +290,16 @@ class FlyLocaliser:
                 return False
         return True
 
-    def _add_keyframe(self, stamp_ns: int, T_map_base: np.ndarray, points: np.ndarray, fitness: np.ndarray):
+    def _add_keyframe(self, stamp_ns: int, T_map_base: np.ndarray, points: np.ndarray, fitness: np.ndarray,
+                      view_flies=None):
         pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
+        view = None
+        if view_flies is not None:
+            c = self.config
+            view = reference_view(T_map_base @ self.T_base_camera, *view_flies, c.photometric_flies, 0.3,
+                                  c.photometric_levels)
         self.keyframes.append(Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32),
-                                       fit.astype(np.float32)))
+                                       fit.astype(np.float32), view=view))
         self._next_id += 1
 
     # ------------------------------------------------------------------------------ prediction
@@ -294,27 +324,27 @@ class FlyLocaliser:
         tr = self._track
         if tr.last_T_map_base is None:
             return np.eye(4), "none"
+        if tr.last_motion is None:
+            return tr.last_T_map_base.copy(), "none"
         dt = (stamp_ns - tr.last_stamp) * 1e-9
-        vx, vy, w = tr.velocity * dt
-        return tr.last_T_map_base @ planar_pose(vx, vy, w), "constant velocity"
+        return tr.last_T_map_base @ _scaled_motion(tr.last_motion, dt / tr.last_dt), "constant velocity"
 
     def _track_update(self, stamp_ns: int, T_map_base: np.ndarray) -> None:
         tr = self._track
         if tr.last_T_map_base is not None and stamp_ns > tr.last_stamp:
-            dt = (stamp_ns - tr.last_stamp) * 1e-9
-            rel = invert(tr.last_T_map_base) @ T_map_base
-            x, y, yaw = planar_from_transform(rel)
-            tr.velocity = np.array([x, y, yaw]) / dt
-        tr.last_T_map_base, tr.last_stamp = T_map_base.copy(), stamp_ns
+            tr.last_dt = (stamp_ns - tr.last_stamp) * 1e-9
+            tr.last_motion = orthonormalised(invert(tr.last_T_map_base) @ T_map_base)
+        tr.last_T_map_base, tr.last_stamp = orthonormalised(T_map_base), stamp_ns
 
     # ---------------------------------------------------------------------------------- update
     def update(self, stamp_ns: int, positions_cam: np.ndarray, fitness: np.ndarray,
-               T_odom_base: np.ndarray | None = None, generation: int | None = None) -> Estimate:
+               T_odom_base: np.ndarray | None = None, generation: int | None = None,
+               image: np.ndarray | None = None) -> Estimate:
         """Localise one population (left optical frame) seen at ``stamp_ns``; see the module doc.
 
-        ``generation``: the evolver's generation count. The map is not started before
-        ``min_generations``: a young population is mostly random flies, and a first keyframe made of them
-        rotated the live map frame by 0.2 rad within seconds (measured on a closed-loop run)."""
+        ``generation``: the evolver's generation count; the map starts only from a population that has
+        evolved ``min_generations``. ``image``: the left image the flies were evaluated on; with it the
+        pose is refined on the flies' neighbourhoods (photometric tracking against a keyframe)."""
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
             if T_odom_base.shape != (4, 4):
@@ -322,9 +352,19 @@ class FlyLocaliser:
             if not np.all(np.isfinite(T_odom_base)):
                 raise LocaliserError("T_odom_base is not finite")
         c = self.config
+        if c.odometry == "visual":
+            T_odom_base = None
         points, fit = self.select_flies(positions_cam, fitness)
         T_pred, source = self._predict(stamp_ns, T_odom_base)
         cov_pred = np.diag([0.05, 0.05, 1e-6, 1e-6, 1e-6, 0.02]) ** 2
+        new_pyramid = view_flies = None
+        if image is not None and c.photometric and self.calibration is not None:
+            image = np.asarray(image)
+            if image.shape[:2] != (self.calibration.height, self.calibration.width):
+                raise LocaliserError(f"image is {image.shape[1]}x{image.shape[0]}, the calibration "
+                                     f"{self.calibration.width}x{self.calibration.height}")
+            new_pyramid = pyramid(image, c.photometric_levels)
+            view_flies = (positions_cam, fitness, image)
 
         def finish(T_map_base, status, registered, cov, delta=float("nan"), may_add=True):
             added = False
@@ -338,8 +378,16 @@ class FlyLocaliser:
                 added = True
             if T_odom_base is not None:
                 self.T_map_odom = T_map_base @ invert(T_odom_base)
+            if view_flies is not None and (registered or self._reference is None):
+                self._renew_reference(T_map_base, view_flies)
             self._track_update(stamp_ns, T_map_base)
             return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
+
+        def fixed(T_map_base, cov, delta=float("nan")):
+            self._last_fix_stamp = stamp_ns
+            self._driven_since_fix = 0.0
+            self._turned_since_fix = 0.0
+            return finish(T_map_base, "ok", True, cov, delta)
 
         if not self.keyframes and generation is not None and generation < c.min_generations:
             return finish(T_pred, f"odometry only: waiting for the flies to converge (generation "
@@ -353,8 +401,18 @@ class FlyLocaliser:
             if len(points) < c.min_flies:
                 return finish(T_pred, f"odometry only: {len(points)} usable flies to start a map", False, cov_pred)
             return finish(T_pred, "initialised", False, np.zeros((6, 6)))
+        photometric_reason = ""
+        if new_pyramid is not None:
+            # no motion known yet (the first frames of a visual-only run): search the lattice first
+            fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source,
+                                                        search=source == "none")
+            if fix is None and source == "constant velocity":
+                fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
+            if fix is not None:
+                return fixed(fix.T_map_base, fix.covariance)
         if len(points) < c.min_flies:
-            return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies})", False, cov_pred)
+            why = f"; photometric: {photometric_reason}" if photometric_reason else ""
+            return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies}){why}", False, cov_pred)
         # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
         B = transform_points(invert(T_pred), self.local_map(T_pred))
         if source == "odometry":
@@ -388,13 +446,54 @@ class FlyLocaliser:
         f_post, cov3 = fused
         # f maps B's frame (predicted base) into A's frame (true base): T_true_pred.
         T_map_base = T_pred @ invert(planar_pose(*f_post))
-        self._last_fix_stamp = stamp_ns
-        self._driven_since_fix = 0.0
-        self._turned_since_fix = 0.0
+        if new_pyramid is not None:       # δ found the basin; the neighbourhoods pin the pose in it
+            fix, _ = self._photometric(new_pyramid, T_map_base, T_pred, source)
+            if fix is not None:
+                return fixed(fix.T_map_base, fix.covariance, res.delta)
         cov = np.zeros((6, 6))
         cov[np.ix_([0, 1, 5], [0, 1, 5])] = cov3
         cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-6
-        return finish(T_map_base, "ok", True, cov, res.delta)
+        return fixed(T_map_base, cov, res.delta)
+
+    def _renew_reference(self, T_map_base: np.ndarray, view_flies) -> None:
+        """Make this population the tracking reference once the camera has left the current one's
+        neighbourhood: moved ``photometric_reference_spacing`` × its flies' median depth, or turned."""
+        c = self.config
+        T_map_cam = T_map_base @ self.T_base_camera
+        ref = self._reference
+        if ref is not None:
+            rel = invert(ref.T_map_cam) @ T_map_cam
+            depth = float(np.median(ref.points[:, 2])) if len(ref.points) else 1.0
+            if (np.linalg.norm(rel[:3, 3]) < c.photometric_reference_spacing * depth
+                    and np.linalg.norm(so3_log(rel[:3, :3])) < c.photometric_reference_angle_rad):
+                return
+        self._reference = reference_view(T_map_cam, *view_flies, c.photometric_flies, 0.3, c.photometric_levels)
+
+    def _photometric(self, new_pyramid, T_start: np.ndarray, T_pred: np.ndarray, source: str, search: bool = False):
+        """(Fix, '') from aligning the best-placed keyframe view's flies into the new image from
+        ``T_start``, or (None, why); a fix implausibly far from the prediction is refused."""
+        if self._reference is None:
+            return None, "no reference view yet"
+        c = self.config
+        fix, why = photometric_fix(self._reference, new_pyramid, self.calibration.K_left, T_start,
+                                   self.T_base_camera, c.photometric_min_inliers, search=search)
+        if fix is None:
+            return None, why
+        jump = invert(T_pred) @ fix.T_map_base
+        moved = np.linalg.norm(jump[:3, 3])
+        turned = np.degrees(np.linalg.norm(so3_log(jump[:3, :3])))
+        if source == "odometry":
+            sxy, syaw = self._prior_sigmas()
+            limit_m, limit_deg = max(4 * sxy, 0.05), max(np.degrees(4 * syaw), 1.0)
+        elif source == "none":       # what the lattice search spans
+            limit_m, limit_deg = np.inf, 10.0
+        else:            # constant velocity: a change of speed up to half the last step, 5° of turn
+            step = np.linalg.norm(self._track.last_motion[:3, 3]) if self._track.last_motion is not None else 1.0
+            limit_m, limit_deg = 0.3 + 0.5 * step, 5.0
+        if moved > limit_m or turned > limit_deg:
+            return None, (f"photometric fix {moved:.2f} m / {turned:.1f}° from the prediction "
+                          f"(limit {limit_m:.2f} m / {limit_deg:.1f}°)")
+        return fix, ""
 
     def _register_pinning_edges(self, register, window: np.ndarray, tracking: bool):
         """(result, pinned mask) of ``register(window)``.  A minimum on the window's edge in some

@@ -1,0 +1,87 @@
+"""Photometric tracking against a keyframe: what a keyframe keeps of its flies' image neighbourhoods,
+and the fix a new image gets from them.
+
+A keyframe's :class:`ReferenceView` holds its fittest flies in its left optical frame, their fitness
+and the left image they were evaluated on. :func:`photometric_fix` aligns those flies into a new left
+image (common.registration.photometric), starting from a predicted camera pose, and returns the new
+base pose in the map with its covariance, or None with the reason it was refused. The pyramid of a
+view is built on first use and dropped with the view.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.geometry import invert
+from common.registration.photometric import align_flies, coarse_search, pyramid
+
+
+@dataclass
+class ReferenceView:
+    T_map_cam: np.ndarray           # left optical frame of the keyframe in the map
+    points: np.ndarray              # (K, 3) float32 fittest flies, keyframe left optical frame
+    weights: np.ndarray             # (K,) float32 their fitness
+    image: np.ndarray               # (H, W) uint8 left image
+    levels: int = 4
+    _pyramid: list | None = field(default=None, repr=False)
+
+    def pyramid(self) -> list[np.ndarray]:
+        if self._pyramid is None:
+            self._pyramid = pyramid(self.image, self.levels)
+        return self._pyramid
+
+
+def reference_view(T_map_cam, positions_cam, fitness, image, count: int, near_m: float, levels: int) -> ReferenceView:
+    """The ``count`` fittest flies in front of the camera (beyond ``near_m``) with their image."""
+    P = np.asarray(positions_cam, np.float32)
+    f = np.asarray(fitness, np.float32)
+    ok = np.flatnonzero(np.isfinite(P).all(1) & np.isfinite(f) & (f > 0) & (P[:, 2] > near_m))
+    keep = ok[np.argsort(-f[ok], kind="stable")[:count]]
+    grey = image if image.ndim == 2 else image.mean(axis=2).astype(np.uint8)
+    return ReferenceView(np.asarray(T_map_cam, float).copy(), P[keep].copy(), f[keep].copy(),
+                         np.ascontiguousarray(grey), levels)
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6×6 adjoint of a rigid transform for twists ordered (translation, rotation)."""
+    R, p = T[:3, :3], T[:3, 3]
+    P = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[:3, 3:] = P @ R
+    A[3:, 3:] = R
+    return A
+
+
+@dataclass
+class Fix:
+    T_map_base: np.ndarray
+    covariance: np.ndarray          # 6×6 over map-frame position (x, y, z) and rotation (about x, y, z)
+    inliers: float
+    residual: float
+
+
+def photometric_fix(view: ReferenceView, new_pyramid: list[np.ndarray], K: np.ndarray, T_map_base_pred: np.ndarray,
+                    T_base_camera: np.ndarray, min_inliers: float, search: bool = False) -> tuple[Fix | None, str]:
+    """Align ``view``'s flies into the new image from the predicted pose (after a coarse lattice search
+    around it with ``search``, when the motion is unknown); (fix, '') or (None, why)."""
+    T_map_cam_pred = T_map_base_pred @ T_base_camera
+    T_init = invert(T_map_cam_pred) @ view.T_map_cam                 # T_new_ref
+    if search:
+        T_init = coarse_search(view.points, view.weights, view.pyramid(), new_pyramid, K, T_init)
+    al = align_flies(view.points, view.weights, view.pyramid(), new_pyramid, K, T_init)
+    if not al.ok:
+        return None, al.reason
+    if al.inliers < min_inliers:
+        return None, f"photometric alignment has {100 * al.inliers:.0f} % inliers (< {100 * min_inliers:.0f} %)"
+    T_map_cam = view.T_map_cam @ invert(al.T)
+    T_map_base = T_map_cam @ invert(T_base_camera)
+    # al.covariance: right perturbation ξ of T_new_ref; T_map_cam = T_map_ref · T⁻¹, so the new camera
+    # moves by −Ad(T)ξ in its own frame; its position and heading errors in the map are that twist's
+    # translation and rotation turned by R_map_cam (the camera-to-base lever arm is neglected).
+    R = np.zeros((6, 6))
+    R[:3, :3] = R[3:, 3:] = T_map_cam[:3, :3]
+    A = R @ adjoint(al.T)
+    cov = A @ al.covariance @ A.T
+    return Fix(T_map_base, 0.5 * (cov + cov.T), al.inliers, al.residual), ""
