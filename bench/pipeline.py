@@ -236,7 +236,8 @@ def format_budget(pct: dict[str, float] | None, ms: dict[str, float] | None) -> 
     if not pct or not ms:
         return "[pipeline] CPU while frames flow: not measured (fewer than two samples with frames)"
     order = sorted((k for k in pct if k != "total"), key=lambda k: -pct[k]) + ["total"]
-    lines = ["[pipeline] CPU while frames flow:", f"[pipeline]   {'service':<12} {'% of a core':>11} {'CPU-ms/frame':>13}"]
+    lines = ["[pipeline] CPU while frames flow:",
+             f"[pipeline]   {'service':<12} {'% of a core':>11} {'CPU-ms/frame':>13}"]
     lines += [f"[pipeline]   {k:<12} {pct[k]:11.1f} {ms[k]:13.2f}" for k in order]
     return "\n".join(lines)
 
@@ -279,7 +280,8 @@ def main(argv=None) -> int:
     for label, r in [("", result)] + ([("hog: ", result["hog"])] if "hog" in result else []):
         print(f"{label}frames published {r['frames_published']}, evolved {r['frames_evolved']} "
               f"({100 * (r['frames_skipped_fraction'] or 0):.0f} % skipped), poses {r['poses']} "
-              f"({100 * (r['posed_fraction'] or 0):.0f} % of frames), ATE {r['ate_rmse_m']} m, load {r['loadavg_1min']}")
+              f"({100 * (r['posed_fraction'] or 0):.0f} % of frames), ATE {r['ate_rmse_m']} m, "
+              f"load {r['loadavg_1min_at_start']} -> {r['loadavg_1min']}")
         print(f"{label}pose latency p50 {r['pose_latency_p50_ms']} ms, p99 {r['pose_latency_p99_ms']} ms "
               f"(frame published -> pose published for that frame)")
         print(f"{label}evolver {r['evolver_generations_per_s']} generations/s; services' memory peak "

@@ -3,8 +3,9 @@
 deploy/setup.sh runs it once per install, so no run pays for compilation.  The kernels are driven through
 the same public calls the services make (a few frames of a small simulated corridor: render, sonar, the
 evolver with its sonar term, the localiser, the planner), so they compile for the argument types a run
-uses.  Afterwards every ``cache=True`` kernel of the scanned modules must hold a compiled signature
-(inline-only helpers excepted); a kernel left out is named and the exit status is 1.
+uses.  Afterwards every kernel of the scanned modules must be ``cache=True`` and hold a compiled signature
+or be called by another kernel (compiled with it; inline-only helpers excepted); a kernel left out is
+named and the exit status is 1.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import common
+from common import numba_cache
 
 _SKIP = ("common.warmup",)
 # Defined but called by nothing in the repository (not even by another kernel): nothing to warm.
@@ -38,16 +40,22 @@ def kernel_modules() -> list[str]:
 
 
 def kernels(modules: list[str]) -> dict[str, object]:
-    """'module.name' → numba dispatcher, for every cached dispatcher defined in ``modules``."""
+    """'module.name' → numba dispatcher, for every dispatcher defined in ``modules`` (inline-only excepted)."""
     from numba.core.registry import CPUDispatcher
     found = {}
     for name in modules:
         mod = importlib.import_module(name)
         for attr, obj in vars(mod).items():
-            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name and obj._cache is not None \
-                    and not hasattr(obj._cache, "_disabled") and obj.targetoptions.get("inline") != "always":
+            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name \
+                    and obj.targetoptions.get("inline") != "always":
                 found[f"{name}.{attr}"] = obj
     return found
+
+
+def uncached(found: dict[str, object]) -> list[str]:
+    """Kernels without ``cache=True``: they would compile in every process."""
+    from numba.core.caching import FunctionCache
+    return sorted(k for k, d in found.items() if not isinstance(d._cache, FunctionCache))
 
 
 def callees(found: dict[str, object]) -> set[str]:
@@ -151,14 +159,18 @@ def main(argv=None) -> int:
     missing = sorted(k for k, d in found.items() if not d.signatures and k not in inner and k not in UNUSED)
     compiled = sum(sum(d.stats.cache_misses.values()) for d in found.values())
     loaded = sum(sum(d.stats.cache_hits.values()) for d in found.values())
-    where = common.numba_cache.configure() or "next to the sources (__pycache__)"
+    where = numba_cache.configure() or "next to the sources (__pycache__)"
     print(f"[warmup] {len(found)} numba kernels ready in {time.perf_counter() - t0:.1f} s "
           f"(imports {t_import:.1f} s): {compiled} signatures compiled, {loaded} loaded from the cache in {where}",
           file=sys.stderr)
+    status = 0
     if missing:
         print(f"[warmup] not exercised, will compile in a run: {', '.join(missing)}", file=sys.stderr)
-        return 1
-    return 0
+        status = 1
+    if uncached(found):
+        print(f"[warmup] not cache=True, will compile in every run: {', '.join(uncached(found))}", file=sys.stderr)
+        status = 1
+    return status
 
 
 if __name__ == "__main__":
