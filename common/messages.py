@@ -92,12 +92,15 @@ class SonarScan(Message):
 class FlyPopulation(Message):
     """The evolver's current answer: fly positions (N×3, in frame_id, normally camera_left_optical),
     fitness, generation count and the seq of the stereo frame they were last evaluated on.
-    ``T_odom_camera`` is the camera pose in odom at that frame, when odometry was available."""
+    ``T_odom_camera`` is the camera pose in odom at that frame, when odometry was available; ``image``
+    the grey left image of that frame (the flies' neighbourhoods, for photometric tracking), sent with
+    a frame's first publication only."""
     positions: np.ndarray = array_field("float32", (None, 3))
     fitness: np.ndarray = array_field("float32", (None,))
     generation: int = 0
     source_seq: int = 0
     T_odom_camera: Optional[np.ndarray] = array_field("float64", (4, 4), optional=True)
+    image: Optional[np.ndarray] = array_field("uint8", (None, None), optional=True)
     header: Envelope = _header_field()
 
 

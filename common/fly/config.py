@@ -25,8 +25,9 @@ class EvolverConfig:
     """
     population: int = 5000
     neighbourhood: int = 7            # N of the N×N window compared between left and right (odd, 3..15)
-    depth_min: float = 0.3            # metres; flies are drawn with 1/z uniform in [1/depth_max, 1/depth_min]
-    depth_max: float = 30.0           # metres; may be infinite (1/z down to 0)
+    # Flies are drawn with 1/z uniform in [1/depth_max, 1/depth_min] (metres; depth_max may be inf).
+    depth_min: float | None = None    # None: where the disparity is a quarter of the image width, f·B/(W/4)
+    depth_max: float | None = None    # None: where it is one pixel, f·B/1 px (farther is not resolved)
     mode: str = "steady"              # 'steady' | 'generational'
     selection: str = "tournament"     # 'tournament' | 'elitist'
     tournament_size: int = 2
@@ -67,9 +68,9 @@ class EvolverConfig:
             bad(f"population must be an integer ≥ 4, got {self.population}")
         if self.neighbourhood % 2 != 1 or not 1 <= self.neighbourhood <= 15:
             bad(f"neighbourhood must be odd in 1..15, got {self.neighbourhood}")
-        if not (self.depth_min > 0 and math.isfinite(self.depth_min)):
+        if self.depth_min is not None and not (self.depth_min > 0 and math.isfinite(self.depth_min)):
             bad(f"depth_min must be positive and finite, got {self.depth_min}")
-        if not self.depth_max > self.depth_min:
+        if self.depth_max is not None and not self.depth_max > (self.depth_min or 0.0):
             bad(f"depth_max ({self.depth_max}) must exceed depth_min ({self.depth_min})")
         if self.mode not in ("steady", "generational"):
             bad(f"mode must be 'steady' or 'generational', got {self.mode!r}")
@@ -105,3 +106,13 @@ class EvolverConfig:
                 bad(f"{name} must be an odd positive integer or None, got {v}")
         if self.window_sigma is not None and not self.window_sigma > 0:
             bad(f"window_sigma must be positive or None, got {self.window_sigma}")
+
+    def depth_range(self, calib) -> tuple[float, float]:
+        """(depth_min, depth_max) in metres for a rig, the unset ends derived from its f·B and width."""
+        fb = calib.fx * calib.baseline
+        lo = self.depth_min if self.depth_min is not None else fb / (0.25 * calib.width)
+        hi = self.depth_max if self.depth_max is not None else fb / 1.0
+        if not hi > lo:
+            raise EvolverConfigError(f"EvolverConfig: depth range [{lo:.3g}, {hi:.3g}] m is empty for a rig "
+                                     f"with f·B = {fb:.3g} px·m")
+        return lo, hi

@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from common import messages as m
@@ -89,6 +90,7 @@ class EvolverCore:
         self._sonar: m.SonarScan | None = None
         self._last_T_odom_cam: np.ndarray | None = None
         self._current: tuple[int, int, np.ndarray | None] | None = None   # seq, stamp, T_odom_cam
+        self._left_grey: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------- inputs
     def on_calibration(self, msg: m.StereoCalibrationMsg) -> None:
@@ -152,13 +154,14 @@ class EvolverCore:
             self._last_T_odom_cam = T_odom_cam
         evolver.set_images(left, right)
         self._current = (frame.header.seq, stamp, T_odom_cam)
+        self._left_grey = left if left.ndim == 2 else cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
         t_ready = self.clock()
         if isinstance(self.settle, SettlePolicy):
             generations = settle(evolver, reference, self.settle)
         else:
             evolver.step(int(self.settle))
             generations = int(self.settle)
-        pop = self.population()
+        pop = self.population(with_image=True)
         t_published = self.clock()
         trace = m.EvolverTrace(take_ns=t_take, decoded_ns=t_decoded, ready_ns=t_ready, published_ns=t_published,
                                generations=int(generations), reference=reference,
@@ -176,16 +179,23 @@ class EvolverCore:
         """One generation on the current frame (anytime: between frames)."""
         self.evolver.step(1)
 
+    def evolve(self, generations: int) -> None:
+        """``generations`` more generations on the current frame."""
+        if generations > 0:
+            self.evolver.step(int(generations))
+
     @property
     def generation(self) -> int:
         return int(self.evolver.generation) if self.evolver is not None else 0
 
-    def population(self) -> m.FlyPopulation:
-        """The current population on the frame it was last evaluated on."""
+    def population(self, with_image: bool = False) -> m.FlyPopulation:
+        """The current population on the frame it was last evaluated on (with that frame's grey left
+        image for a frame's first publication, ``with_image``)."""
         seq, stamp, T_odom_cam = self._current
         ev = self.evolver
         return m.FlyPopulation(positions=ev.positions, fitness=ev.fitness, generation=int(ev.generation),
                                source_seq=int(seq), T_odom_camera=T_odom_cam,
+                               image=self._left_grey if with_image else None,
                                header=m.header(0, stamp, m.CAMERA_LEFT_OPTICAL))
 
     # --------------------------------------------------------------------------------- sonar

@@ -70,10 +70,11 @@ class FlyEvolver:
         self.rng = np.random.default_rng(seed)
         self._half = config.neighbourhood // 2
         self._margin = self._half + 1.0
-        self._d_range = disparity_bounds(calib, config.depth_min, config.depth_max)
+        self.depth_min, self.depth_max = config.depth_range(calib)
+        self._d_range = disparity_bounds(calib, self.depth_min, self.depth_max)
         span = calib.width - 1 - 2 * self._margin
         fb = calib.fx * calib.baseline
-        d_far = fb / (1e6 * config.depth_min) - calib.doffs   # keep mutated flies at finite depth
+        d_far = fb / (1e6 * self.depth_min) - calib.doffs   # keep mutated flies at finite depth
         self._d_range = (max(self._d_range[0], -span, d_far), min(self._d_range[1], span))
         self._sigma_max = max((self._d_range[1] - self._d_range[0]) / 2, config.mutation_sigma_disparity_min)
         cell = config.sharing_radius_px or float(np.sqrt(calib.width * calib.height / config.population))
@@ -86,7 +87,7 @@ class FlyEvolver:
         self._frames_since_noise = 0
         self.generation = 0
         n = config.population
-        self._pos = sample_flies(calib, n, config.depth_min, config.depth_max, self.rng, self._margin)
+        self._pos = sample_flies(calib, n, self.depth_min, self.depth_max, self.rng, self._margin)
         self._sigma_d = np.full(n, config.mutation_sigma_disparity, np.float32)
         self._fit = np.full(n, OUTSIDE_FITNESS, np.float32)
         self._cells = np.full(n, -1, np.int64)
@@ -252,7 +253,7 @@ class FlyEvolver:
         c, rng = self.config, self.rng
         m = len(parents)
         n_imm = int(np.count_nonzero(ops == IMMIGRANT))
-        immigrants = (sample_flies(self.calib, n_imm, c.depth_min, c.depth_max, rng, self._margin) if n_imm
+        immigrants = (sample_flies(self.calib, n_imm, self.depth_min, self.depth_max, rng, self._margin) if n_imm
                       else np.zeros((0, 3), np.float32))
         child = np.empty((m, 3), np.float32)
         sigma = np.empty(m, np.float32)
