@@ -44,14 +44,16 @@ def require(path: Path, what: str) -> Path:
     return path
 
 
-def map_poses_from_camera(T_w_cam: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+def map_poses_from_camera(T_w_cam: np.ndarray, reference: np.ndarray | None = None,
+                          T_base_camera: np.ndarray = C_BODY_OPTICAL) -> np.ndarray:
     """(N, 4, 4) camera-optical poses in a dataset world → base_link poses in map (see module doc).
 
-    ``reference`` is the camera pose that defines the map (default: the first pose).
+    ``reference`` is the camera pose that defines the map (default: the first pose); ``T_base_camera``
+    the camera's mounting (default: at base_link), the map being base_link at the reference pose.
     """
     T_w_cam = np.asarray(T_w_cam, np.float64)
     ref_inv = invert(T_w_cam[0] if reference is None else reference)
-    return C_BODY_OPTICAL @ (ref_inv @ T_w_cam) @ invert(C_BODY_OPTICAL)
+    return T_base_camera @ (ref_inv @ T_w_cam) @ invert(T_base_camera)
 
 
 @dataclass

@@ -3,7 +3,7 @@
 The grey cameras 0 (left) and 1 (right) are already rectified; ``calib.txt`` rows ``P0:`` and ``P1:``
 are their 3×4 projections (baseline = (P0[0,3] − P1[0,3]) / fx). ``times.txt`` holds seconds since the
 sequence start; ``poses/NN.txt`` (sequences 00–10) the left camera's pose in the first camera's frame,
-converted to base_link in map per common.importers.base.
+converted to base_link in map per common.importers.base, base_link on the road under the left camera.
 """
 from __future__ import annotations
 
@@ -14,7 +14,13 @@ import cv2
 import numpy as np
 
 from common.camera import StereoCalibration
-from common.importers.base import DatasetLayoutError, StereoDataset, T_BASE_CAMERA, map_poses_from_camera, require
+from common.geometry import R_BODY_OPTICAL, make_transform
+from common.importers.base import DatasetLayoutError, StereoDataset, map_poses_from_camera, require
+
+# The KITTI car's left grey camera is 1.65 m above the road (Geiger et al., IJRR 2013, Fig. 3):
+# base_link is on the road under it (REP-103), so the localiser's height band starts at the road.
+CAMERA_HEIGHT_M = 1.65
+T_BASE_CAMERA = make_transform(R_BODY_OPTICAL, [0.0, 0.0, CAMERA_HEIGHT_M])
 from common.trajectory import read_kitti
 
 
@@ -104,7 +110,8 @@ def load_kitti(path, sequence: str | None = None, max_frames: int | None = None)
         poses = read_kitti(poses_file)
         if len(poses) != len(lefts):
             raise DatasetLayoutError(f"KITTI: {poses_file} has {len(poses)} poses for {len(lefts)} images")
-        truth_stamps, truth = stamps[:n], map_poses_from_camera(poses[:n], reference=poses[0])
+        truth_stamps, truth = stamps[:n], map_poses_from_camera(poses[:n], reference=poses[0],
+                                                             T_base_camera=T_BASE_CAMERA)
     else:
         notes.append(f"no ground truth ({poses_file} not found)")
 
