@@ -22,7 +22,7 @@ from common.trajectory import write_tum
 from services.base import config_or_exit, run_service, service_parser
 
 log = logging.getLogger("flyslam.localiser")
-LOCALISER_FLAGS = ["max_keyframes", "max_depth_m"]
+LOCALISER_FLAGS = ["max_keyframes", "max_depth_m", "odometry"]
 RENAME = {"max_depth_m": "max-depth"}
 
 
@@ -31,7 +31,8 @@ def build_parser():
     add_config_arguments(p, LocaliserServiceConfig)
     add_config_arguments(p, LocaliserConfig, only=LOCALISER_FLAGS, rename=RENAME, helps={
         "max_keyframes": "keyframes kept in the map (oldest dropped)",
-        "max_depth_m": "flies farther than this (m, camera depth) are not used"})
+        "max_depth_m": "flies farther than this (m, camera depth) are not used (default: 0.3 f B)",
+        "odometry": "'wheels' (fusion/odom predicts) or 'visual' (no wheels: constant velocity)"})
     return p
 
 
