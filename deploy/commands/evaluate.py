@@ -73,6 +73,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="folder for trajectories, metrics.json and the plot")
     p.add_argument("--generations", type=int, default=30, help="evolver generations per frame")
     add_config_arguments(p, EvolverConfig, only=["population"], helps={"population": "number of flies"})
+    p.add_argument("--deterministic", action="store_true",
+                   help="serial fitness kernel: the same trajectory on every run ('auto' picks kernels by timing)")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--localiser", action="append", default=[], metavar="FIELD=VALUE",
@@ -85,7 +87,8 @@ def main(argv=None) -> int:
         return 2
     try:
         localiser_config = parse_overrides(args.localiser)
-        evolver_config = config_from_args(EvolverConfig, args, only=["population"])
+        evolver_config = config_from_args(EvolverConfig, args, only=["population"],
+                                          **({"parallel": False} if args.deterministic else {}))
     except ValueError as e:
         print(f"flyslam eval: {e}", file=sys.stderr)
         return 2
