@@ -91,6 +91,7 @@ class FusionHandlers:
         self.lock = threading.Lock()
         self.pubs = {s: node.publisher(s) for s in (S.FUSION_ODOM, S.FUSION_POSE, S.FUSION_SONAR,
                                                      S.FUSION_SONAR_POINTS)}
+        self._slam_correction = self.correction(core.on_slam_pose, "slam_pose")
 
     def on_wheels(self, msg: m.WheelOdometry) -> None:
         with self.lock:
@@ -118,6 +119,18 @@ class FusionHandlers:
                         "%s not fused: %s", what, result.reason)
         return on_msg
 
+    def on_slam_pose(self, msg: m.PoseEstimate) -> None:
+        """Without wheels: the localiser's estimate is republished as odometry; else fused as a correction."""
+        with self.lock:
+            visual = self.core.visual_odometry(msg)
+            if visual is not None:
+                self.pubs[S.FUSION_ODOM].publish(visual[0])
+                self.pubs[S.FUSION_POSE].publish(visual[1])
+        if visual is not None:
+            self.node.progress += 1
+            return
+        self._slam_correction(msg)
+
     def on_sonar(self, msg: m.SonarScan) -> None:
         try:
             scan, points = sonar_outputs(msg, self.run)
@@ -136,7 +149,7 @@ def body(node, args) -> int:
     handlers = FusionHandlers(node, core, run)
     recover(node, core, run.recover_timeout)
     node.subscribe(S.ODOM_WHEELS, callback=handlers.on_wheels)
-    node.subscribe(S.SLAM_POSE, callback=handlers.correction(core.on_slam_pose, "slam_pose"))
+    node.subscribe(S.SLAM_POSE, callback=handlers.on_slam_pose)
     node.subscribe(S.SLAM_MAP_TO_ODOM, callback=handlers.correction(core.on_map_to_odom, "map_to_odom"))
     node.subscribe(S.SONAR_SCAN, callback=handlers.on_sonar)
     while node.sleep(0.5):

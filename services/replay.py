@@ -16,7 +16,10 @@ import logging
 import sys
 import time
 
+import numpy as np
+
 from common.recording import RecordingError, RecordingReader
+from common.trajectory import write_tum
 from services.base import run_service, service_parser
 
 log = logging.getLogger("flyslam.replay")
@@ -36,6 +39,8 @@ def build_parser():
     p.add_argument("--end", type=float, default=None, help="seconds into the recording to stop at")
     p.add_argument("--keys", nargs="+", default=SOURCE_STREAMS,
                    help="streams to replay (without robot prefix); 'all' replays every channel")
+    p.add_argument("--truth-tum", default=None,
+                   help="write the replayed truth/pose as a TUM trajectory here (at the end of each pass)")
     p.add_argument("--wait-subscribers", type=float, default=0.5,
                    help="seconds to wait after opening the session so subscribers can connect")
     return p
@@ -57,6 +62,7 @@ def body(node, args) -> int:
     node.sleep(args.wait_subscribers)
     first_ns = None
     passes = 0
+    truth: list[bytes] = []
     while not node.stopping:
         t0_wall = time.monotonic()
         t0_rec = None
@@ -85,9 +91,13 @@ def body(node, args) -> int:
             if pub is None:
                 pub = publishers[stream] = node.publisher(stream, latched=m.schema in LATCHED_SCHEMAS, reliable=True)
             pub.put_raw(m.payload)
+            if args.truth_tum and stream == "truth/pose":
+                truth.append(m.payload)
             published += 1
             node.progress += 1
         passes += 1
+        if args.truth_tum and truth:
+            _write_truth(args.truth_tum, truth)
         if reader.errors:
             for path, problem in reader.errors.items():
                 log.warning("%s: %s; replayed what it holds before that", path, problem)
@@ -97,6 +107,22 @@ def body(node, args) -> int:
         if not args.loop or published == 0:
             break
     return 0
+
+
+def _write_truth(path: str, payloads: list[bytes]) -> None:
+    """The replayed ground truth (PoseEstimate payloads) as a TUM file; undecodable ones are skipped."""
+    from common import messages as msgs
+    stamps, poses = [], []
+    for payload in payloads:
+        try:
+            pose = msgs.decode(payload, msgs.PoseEstimate)
+        except msgs.DecodeError:
+            continue
+        stamps.append(pose.header.stamp_ns)
+        poses.append(msgs.transform_of(pose))
+    if stamps:
+        write_tum(path, np.array(stamps, np.int64), np.array(poses))
+        log.info("wrote %d truth poses to %s", len(stamps), path)
 
 
 def main(argv=None) -> int:

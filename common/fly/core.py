@@ -81,7 +81,10 @@ class EvolverCore:
         self.settle = settle
         self.seed = seed
         self.sonar_weight = sonar_weight
-        self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=400)
+        # Extrapolated at constant velocity: visual odometry (the localiser's estimates relayed by fusion)
+        # only knows frames already localised, one or two frame periods before the new one.
+        self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=400, max_extrapolation_ns=500_000_000,
+                                                                          extrapolate=True)
         self.clock = clock
         self.evolver: FlyEvolver | None = None
         self.calibration: StereoCalibration | None = None

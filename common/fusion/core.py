@@ -7,6 +7,7 @@ and turns each input message into the output messages the service publishes:
   odometry rate; a flagged reading republishes the held pose with status ``'flagged: <why>'``.
 * ``on_slam_pose(PoseEstimate)`` / ``on_map_to_odom(TransformMsg)`` → a :class:`CorrectionResult`.
 * ``restore(odom_msg, pose_msg)`` continues from the latched outputs of a previous run.
+* ``visual_odometry(PoseEstimate)``: with no wheel odometry, a slam/pose becomes fusion/odom and fusion/pose.
 
 Statuses of ``fusion/pose``: 'ok' (a correction fused within ``stale_after_s``), 'odometry only' (none yet,
 or stale), 'flagged: <why>' (this odometry reading or the last correction was refused).  ``fusion/odom``
@@ -43,6 +44,7 @@ class FusionCore:
         self.counters = FusionCounters()
         self.last_step: OdometryStep | None = None
         self._pending_flag: str | None = None
+        self.wheels_seen = False
 
     # ------------------------------------------------------------------------------ restart
     def restore(self, odom: PoseEstimate | None, pose: PoseEstimate | None) -> bool:
@@ -63,6 +65,7 @@ class FusionCore:
 
     # ----------------------------------------------------------------------------- odometry
     def on_odometry(self, msg: WheelOdometry) -> tuple[PoseEstimate, PoseEstimate]:
+        self.wheels_seen = True
         step = self.odometry.update(msg)
         self.last_step = step
         if step.ok:
@@ -103,6 +106,21 @@ class FusionCore:
                                                         covariance3(msg.covariance)))
         except (CorrectionError, np.linalg.LinAlgError, ValueError) as e:
             return self._unusable(str(e))
+
+    def visual_odometry(self, msg: PoseEstimate) -> tuple[PoseEstimate, PoseEstimate] | None:
+        """Without wheels the localiser's own estimates are the odometry (map and odom coincide):
+        (``fusion/odom``, ``fusion/pose``) from an 'ok' ``slam/pose``, or None once wheels were seen or
+        for a pose that is not usable. Downstream, nothing changes."""
+        if self.wheels_seen or msg.status != "ok" or msg.header.frame_id != MAP:
+            return None
+        T = transform_of(msg)
+        if not np.all(np.isfinite(T)) or not np.all(np.isfinite(msg.covariance)):
+            return None
+        stamp, seq = msg.header.stamp_ns, msg.header.seq
+        return (pose_msg(T, msg.covariance, stamp_ns=stamp, frame_id=ODOM, child=BASE_LINK, status="visual",
+                         source_seq=seq),
+                pose_msg(T, msg.covariance, stamp_ns=stamp, frame_id=MAP, child=BASE_LINK, status="ok",
+                         source_seq=seq))
 
     def on_map_to_odom(self, msg: TransformMsg) -> CorrectionResult:
         if msg.header.frame_id != MAP or msg.child_frame_id != ODOM:

@@ -184,7 +184,7 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
 
 def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[np.ndarray],
                   new_pyramid: list[np.ndarray], K: np.ndarray, T_center: np.ndarray | None = None,
-                  max_candidates_per_axis: int = 15, max_flies: int = 400) -> np.ndarray:
+                  max_candidates_per_axis: int = 11, max_flies: int = 200) -> np.ndarray:
     """The best start for :func:`align_flies` when the motion is unknown: a lattice of camera motions
     (lateral x, forward z, yaw about the optical y axis) around ``T_center``, scored at the coarsest
     pyramid level by the robust mean residual of the flies' zero-mean neighbourhoods.
@@ -213,7 +213,7 @@ def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list
         return np.linspace(-half, half, n)
     xs = axis(0.1 * z_med, step_px * z_med / fx)
     zs = axis(0.25 * z_med, step_px * z_med / (0.5 * fx))
-    yaws = axis(np.deg2rad(5.0), step_px / fx)
+    yaws = axis(np.deg2rad(5.0), step_px / fx)[:: 2] if max_candidates_per_axis > 5 else axis(np.deg2rad(5.0), step_px / fx)
     X, Z, Y = np.meshgrid(xs, zs, yaws, indexing="ij")
     X, Z, Y = X.ravel(), Z.ravel(), Y.ravel()
     c, sn = np.cos(Y), np.sin(Y)
