@@ -10,7 +10,8 @@
   ``slam/map_to_odom`` TransformMsg, the Estimate) or one with ``reason`` set: a population republished
   for a frame already localised (same ``source_seq``) is skipped, one before any calibration or a
   malformed one is refused.
-* ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``stamps``/``poses`` the trajectory so far.
+* ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``trajectory()`` the trajectory so far (as the
+  back-end now has it); ``save_map(path)`` writes map.mcap, ``initial_map`` starts from a saved one.
 
 Not thread-safe: the service serialises calls.
 """
@@ -24,6 +25,7 @@ from common import messages as m
 from common.geometry import invert, pose_from_transform
 from common.pose_buffer import PoseBuffer
 from common.slam.localiser import Estimate, FlyLocaliser, LocaliserConfig, LocaliserError
+from common.slam.mapfile import FlyMapData, save_map
 
 
 @dataclass
@@ -33,6 +35,10 @@ class LocaliserServiceConfig:
         "help": "write the estimated trajectory (TUM) here, every tum_period_s and on exit"})
     tum_period_s: float = field(default=5.0, metadata={"help": "seconds between TUM rewrites"})
     seed: int = field(default=0, metadata={"help": "random seed of the localiser"})
+    map: str | None = field(default=None, metadata={
+        "help": "start from this saved map (map.mcap of an earlier run)"})
+    map_period_s: float = field(default=10.0, metadata={
+        "help": "seconds between rewrites of map.mcap (written next to --tum, and on exit)"})
 
 
 @dataclass
@@ -44,8 +50,11 @@ class LocaliserOutput:
 
 
 class LocaliserCore:
-    def __init__(self, config: LocaliserConfig | None = None, seed: int = 0, odometry: PoseBuffer | None = None):
+    def __init__(self, config: LocaliserConfig | None = None, seed: int = 0, odometry: PoseBuffer | None = None,
+                 initial_map: FlyMapData | None = None):
+        """``initial_map``: a saved map (common.slam.mapfile.load_map) the localiser starts from."""
         self.config = config or LocaliserConfig()
+        self.initial_map = initial_map
         self.seed = seed
         self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=1000)
         self.localiser: FlyLocaliser | None = None
@@ -78,6 +87,8 @@ class LocaliserCore:
             cmsg = self._calibration_msg
             self.localiser = FlyLocaliser(cmsg.T_base_camera, self.config, seed=self.seed,
                                           calibration=m.calibration_from_msg(cmsg))
+            if self.initial_map is not None:
+                self.localiser.load_map(self.initial_map)
         loc = self.localiser
         stamp = pop.header.stamp_ns
         if pop.T_odom_camera is not None:
@@ -112,6 +123,20 @@ class LocaliserCore:
                                   fitness=kf.fitness))
         return m.FlyMap(keyframes=kfs, header=m.header(0, stamp_ns, m.MAP))
 
+    def save_map(self, path) -> bool:
+        """Write the map (every keyframe, the pose graph's edges) to ``path`` atomically; False when there
+        is no map yet."""
+        if self.localiser is None or not self.localiser.keyframes:
+            return False
+        loc = self.localiser
+        save_map(path, loc.map_keyframes(), loc.map_edges(),
+                 meta={"odometry": self.config.odometry, "pose_graph": self.config.pose_graph,
+                       "loop_closures": sum(lc.accepted for lc in loc.loop_closures)})
+        return True
+
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """(stamps (N,) int64, T_map_base (N, 4, 4)) of every localised population so far."""
-        return np.array(self.stamps, np.int64), np.array(self.poses).reshape(-1, 4, 4)
+        """(stamps (N,) int64, T_map_base (N, 4, 4)) of every localised population so far, in the map as
+        the back-end now knows it (a loop closure corrects the poses before it too)."""
+        if self.localiser is None:
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        return self.localiser.trajectory()

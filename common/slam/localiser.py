@@ -36,6 +36,8 @@ from common.registration.register import StereoModel
 from common.registration.photometric import pyramid
 from common.registration.weights import visible_mask
 from common.pose_buffer import _scaled_motion
+from common.slam.backend import KeyframeGraph, LoopClosure
+from common.slam.posegraph import planar_covariance
 from common.slam.tracking import ReferenceView, photometric_fix, reference_view
 
 
@@ -117,6 +119,13 @@ class LocaliserConfig:
     # median depth from it, or turned photometric_reference_angle_rad: the views stay alike.
     photometric_reference_spacing: float = 0.1
     photometric_reference_angle_rad: float = np.deg2rad(5.0)
+    # Back-end (common.slam.backend): keyframes as pose-graph nodes; published poses corrected by it.
+    pose_graph: bool = True
+    loop_closure: bool = True           # register a new keyframe against an old one near it
+    loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
+    loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
+    loop_min_separation: int = 10       # ... and is at least this many keyframes older
+    loop_window: tuple = (1.0, 1.0, np.deg2rad(15.0))   # its registration's search half-widths
 
 
 @dataclass
@@ -198,6 +207,10 @@ class FlyLocaliser:
         self._reference: ReferenceView | None = None      # photometric tracking reference (see _renew_reference)
         self._next_id = 0
         self._rng = np.random.default_rng(seed)
+        self.backend = KeyframeGraph(self.config, planar=self.config.odometry == "wheels") if self.config.pose_graph else None
+        # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
+        # whole run in the keyframes' current (optimised) poses
+        self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
 
     # ------------------------------------------------------------------------------ selection
     def select_flies(self, positions_cam: np.ndarray, fitness: np.ndarray):
@@ -291,16 +304,116 @@ class FlyLocaliser:
         return True
 
     def _add_keyframe(self, stamp_ns: int, T_map_base: np.ndarray, points: np.ndarray, fitness: np.ndarray,
-                      view_flies=None):
+                      view_flies=None) -> Keyframe:
         pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
         view = None
         if view_flies is not None:
             c = self.config
             view = reference_view(T_map_base @ self.T_base_camera, *view_flies, c.photometric_flies, 0.3,
                                   c.photometric_levels)
-        self.keyframes.append(Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32),
-                                       fit.astype(np.float32), view=view))
+        kf = Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32), fit.astype(np.float32), view=view)
+        self.keyframes.append(kf)
         self._next_id += 1
+        return kf
+
+    # ------------------------------------------------------------------------------ back-end
+    @property
+    def loop_closures(self) -> list[LoopClosure]:
+        return self.backend.loops if self.backend is not None else []
+
+    def _graph_keyframe(self, kf: Keyframe, links: list[int], fix_cov) -> np.ndarray:
+        """Put a new keyframe into the pose graph (and try a loop closure); returns the newest
+        keyframe's correction C (map frame) after optimising."""
+        be = self.backend
+        be.add(kf, links, fix_cov)
+        old = be.loop_candidate(kf, exclude=set()) if self.config.loop_closure else None
+        handle = self._close_loop(old, kf) if old is not None else None
+        C = be.optimise(kf.id)
+        if handle is not None and be.drop_if_outvoted(handle):
+            be.loops[-1].accepted, be.loops[-1].reason = False, "outvoted by the graph"
+            C = be.optimise(kf.id) @ C
+        self._map_cache = self._visible_cache = None
+        return C
+
+    def _close_loop(self, old: Keyframe, kf: Keyframe) -> int | None:
+        """Register keyframe ``kf``'s flies against the old keyframe's (δ, planar, around kf's pose); an
+        informative minimum becomes a robust loop factor.  Axes whose minimum sits on the window's edge
+        (along a corridor) are pinned and their sigma made loose."""
+        c = self.config
+        if len(kf.points) < c.min_flies or len(old.points) < c.min_flies:
+            return None
+        B = transform_points(invert(kf.T_map_base), old.points_map.astype(np.float64))
+        window = np.array(c.loop_window, dtype=float)
+
+        def register(win):
+            return register_planar(kf.points.astype(np.float64), B, plane="body", window=tuple(win), eps=c.eps,
+                                   weights_a=kf.fitness / max(float(kf.fitness.max()), 1e-12), stereo=self.stereo,
+                                   seed=int(kf.stamp_ns % (2**31)), lattice=(7, 7, 7), curvature=False)
+        try:
+            res = register(window)
+            pinned = np.zeros(3, bool)
+            if (not res.ok and res.reason.startswith("minimum on the search window boundary")
+                    and np.all(np.isfinite(res.params))):
+                pinned = np.abs(res.params) > 0.98 * window
+                if not pinned.all():
+                    res = register(np.where(pinned, 0.0, window))
+        except PopulationError as e:
+            self.backend.loops.append(LoopClosure(old.id, kf.id, 0.0, False, str(e)))
+            return None
+        if self._information(res) is None:
+            self.backend.loops.append(LoopClosure(old.id, kf.id, 0.0, False, res.reason))
+            return None
+        sig = np.where(pinned, 1.0, np.asarray(c.registration_sigma, dtype=float))
+        T_new = kf.T_map_base @ invert(planar_pose(*res.params))
+        handle = self.backend.add_loop(old, kf, T_new, planar_covariance(np.diag(sig ** 2)))
+        self.backend.loops.append(LoopClosure(old.id, kf.id, float(np.linalg.norm(res.params[:2])), True))
+        return handle
+
+    def _apply_correction(self, C: np.ndarray) -> None:
+        """Move the state that lives in the map frame (map→odom, tracking, reference view) by C."""
+        self.T_map_odom = C @ self.T_map_odom
+        if self._track.last_T_map_base is not None:
+            self._track.last_T_map_base = C @ self._track.last_T_map_base
+        if self._reference is not None:
+            self._reference.T_map_cam = C @ self._reference.T_map_cam
+
+    def map_keyframes(self) -> list[Keyframe]:
+        """Every keyframe of the map: the back-end's archive (all of them), else the sliding window."""
+        return list(self.backend.archive.values()) if self.backend is not None else list(self.keyframes)
+
+    def map_edges(self) -> list:
+        return list(self.backend.graph.edges().values()) if self.backend is not None else []
+
+    def load_map(self, data) -> None:
+        """Start from a saved map (common.slam.mapfile.FlyMapData): its keyframes (the newest
+        ``max_keyframes`` in the window) and, with the back-end, its graph.  Only before the first update."""
+        if self.keyframes or self._history:
+            raise LocaliserError("a map can only be loaded into a fresh localiser")
+        kfs = sorted(data.keyframes, key=lambda k: k.id)
+        for mk in kfs:
+            kf = Keyframe(int(mk.id), int(mk.stamp_ns), np.asarray(mk.T_map_base, float).copy(),
+                          np.asarray(mk.points, np.float32), np.asarray(mk.fitness, np.float32))
+            self.keyframes.append(kf)
+            if self.backend is not None:
+                self.backend.archive[kf.id] = kf
+                self.backend.graph.add_keyframe(kf.id, kf.T_map_base)
+        if self.backend is not None and kfs:
+            for e in data.edges:
+                self.backend.graph.add_edge(e)
+            if not any(e.kind == "prior" for e in data.edges):
+                first = self.backend.archive[kfs[0].id]
+                self.backend.graph.add_prior(first.id, first.T_map_base, np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
+            self.backend._last_id = kfs[-1].id
+            self.backend.optimise(kfs[-1].id)
+        self._next_id = max((k.id for k in kfs), default=-1) + 1
+        self._map_cache = self._visible_cache = None
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps, T_map_base (N, 4, 4)) of every estimate, each re-expressed in the current pose of the
+        keyframe that was newest when it was made (after loop closures: the corrected trajectory)."""
+        stamps = np.array([h[0] for h in self._history], np.int64)
+        poses = [T if kf is None else kf.T_map_base @ T for _, kf, T in self._history]
+        return stamps, np.array(poses).reshape(-1, 4, 4)
 
     # ------------------------------------------------------------------------------ prediction
     def _predict(self, stamp_ns: int, T_odom_base: np.ndarray | None) -> tuple[np.ndarray, str]:
@@ -366,7 +479,7 @@ class FlyLocaliser:
             new_pyramid = pyramid(image, c.photometric_levels)
             view_flies = (positions_cam, fitness, image)
 
-        def finish(T_map_base, status, registered, cov, delta=float("nan"), may_add=True):
+        def finish(T_map_base, status, registered, cov, delta=float("nan"), may_add=True, links=()):
             added = False
             # Registered poses extend the map; so does odometry when the map no longer covers the robot
             # (a long featureless stretch), or the map would stop growing.
@@ -374,20 +487,27 @@ class FlyLocaliser:
             # (the coverage test projects the whole map: asked last, and only when it decides)
             if (may_add and len(points) >= c.min_flies and self._needs_keyframe(T_map_base)
                     and (registered or far or self._local_keyframes(T_map_base)[1] < c.min_view_coverage)):
-                self._add_keyframe(stamp_ns, T_map_base, points, fit)
+                kf = self._add_keyframe(stamp_ns, T_map_base, points, fit)
                 added = True
+                if self.backend is not None:
+                    C = self._graph_keyframe(kf, list(links) if registered else [], cov if registered else None)
+                    T_map_base = C @ T_map_base
+                    self._apply_correction(C)
             if T_odom_base is not None:
                 self.T_map_odom = T_map_base @ invert(T_odom_base)
             if view_flies is not None and (registered or self._reference is None):
                 self._renew_reference(T_map_base, view_flies)
             self._track_update(stamp_ns, T_map_base)
+            anchor = self.keyframes[-1] if self.keyframes else None
+            self._history.append((stamp_ns, anchor, T_map_base.copy() if anchor is None
+                                  else invert(anchor.T_map_base) @ T_map_base))
             return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
 
-        def fixed(T_map_base, cov, delta=float("nan")):
+        def fixed(T_map_base, cov, delta=float("nan"), links=()):
             self._last_fix_stamp = stamp_ns
             self._driven_since_fix = 0.0
             self._turned_since_fix = 0.0
-            return finish(T_map_base, "ok", True, cov, delta)
+            return finish(T_map_base, "ok", True, cov, delta, links=links)
 
         if not self.keyframes and generation is not None and generation < c.min_generations:
             return finish(T_pred, f"odometry only: waiting for the flies to converge (generation "
@@ -415,6 +535,7 @@ class FlyLocaliser:
             return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies}){why}", False, cov_pred)
         # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
         B = transform_points(invert(T_pred), self.local_map(T_pred))
+        links = [self.keyframes[i].id for i in self._local_keyframes(T_pred)[0]]
         if source == "odometry":
             sxy, syaw = self._prior_sigmas()
             window = np.clip(3.0 * np.array([sxy, sxy, syaw]), c.window, c.max_window)
@@ -449,11 +570,11 @@ class FlyLocaliser:
         if new_pyramid is not None:       # δ found the basin; the neighbourhoods pin the pose in it
             fix, _ = self._photometric(new_pyramid, T_map_base, T_pred, source)
             if fix is not None:
-                return fixed(fix.T_map_base, fix.covariance, res.delta)
+                return fixed(fix.T_map_base, fix.covariance, res.delta, links)
         cov = np.zeros((6, 6))
         cov[np.ix_([0, 1, 5], [0, 1, 5])] = cov3
         cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-6
-        return fixed(T_map_base, cov, res.delta)
+        return fixed(T_map_base, cov, res.delta, links)
 
     def _renew_reference(self, T_map_base: np.ndarray, view_flies) -> None:
         """Make this population the tracking reference once the camera has left the current one's

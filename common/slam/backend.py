@@ -1,0 +1,131 @@
+"""The localiser's back-end: every keyframe a node of a pose graph (common.slam.posegraph), consecutive
+keyframes joined by an odometry factor, the registrations that made a keyframe by registration factors,
+and loop closures (a new keyframe registered against an old one near it) by robust loop factors.
+
+Invariants: every keyframe the localiser ever made stays in ``archive`` (the sliding window only bounds
+the local map); after :meth:`KeyframeGraph.optimise` every archived keyframe's ``T_map_base`` and
+``points_map`` are the graph's.  Factors (flyslam order, frame j, see posegraph):
+
+- odometry i→j: the relative pose the localiser estimated, σ growing with the distance driven and the
+  angle turned between them (the same model as the localiser's odometry prior);
+- registration i→j: the fix's covariance (map-frame position rotated into keyframe j's base);
+- loop i→j: the planar registration's per-axis noise (``registration_sigma``), Cauchy-robust; a loop
+  factor the optimised graph down-weights is removed again.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.geometry import invert, orthonormalised, planar_from_transform, transform_points
+from common.slam.posegraph import PoseGraph, PoseGraphError, planar_covariance
+
+_MIN_SIGMA = (0.005, np.deg2rad(0.05))    # floor on a factor's position (m) and rotation (rad) sigma
+
+
+@dataclass
+class LoopClosure:
+    old_id: int
+    new_id: int
+    correction_m: float        # how far the closure moved the new keyframe
+    accepted: bool
+    reason: str = ""
+
+
+class KeyframeGraph:
+    """Pose graph over the localiser's keyframes.  ``planar``: a wheeled robot (z, roll, pitch held)."""
+
+    def __init__(self, config, planar: bool):
+        self.config = config
+        self.planar = planar
+        self.graph = PoseGraph(robust="cauchy", planar=planar)
+        self.archive: dict = {}            # id -> Keyframe, every keyframe made
+        self.loops: list[LoopClosure] = []
+        self._last_id: int | None = None
+
+    # --------------------------------------------------------------------------- factors
+    def _odometry_cov(self, T_i_j: np.ndarray) -> np.ndarray:
+        c = self.config
+        d = float(np.linalg.norm(T_i_j[:3, 3]))
+        yaw = abs(planar_from_transform(T_i_j)[2])
+        sxy = c.prior_sigma_xy[0] + c.prior_sigma_xy[1] * d
+        syaw = c.prior_sigma_yaw[0] + c.prior_sigma_yaw[1] * d + c.prior_sigma_yaw_per_rad * yaw
+        if self.planar:
+            return planar_covariance(np.diag([sxy, sxy, syaw]) ** 2)
+        return np.diag([sxy, sxy, sxy, syaw, syaw, syaw]) ** 2
+
+    def _body_cov(self, cov_map: np.ndarray, T_map_base: np.ndarray) -> np.ndarray:
+        """A map-frame (position, rotation) 6×6 covariance in the base frame, floored so no axis is exact."""
+        R = np.zeros((6, 6))
+        R[:3, :3] = R[3:, 3:] = T_map_base[:3, :3].T
+        cov = R @ np.asarray(cov_map, dtype=float) @ R.T
+        floor = np.r_[np.full(3, _MIN_SIGMA[0]), np.full(3, _MIN_SIGMA[1])] ** 2
+        cov = 0.5 * (cov + cov.T) + np.diag(floor)
+        if self.planar:      # the planar prior holds z, roll, pitch; a fix says nothing about them
+            cov[2, :] = cov[:, 2] = cov[3, :] = cov[:, 3] = cov[4, :] = cov[:, 4] = 0.0
+            cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-2
+        return cov
+
+    def add(self, kf, registered_to: list[int] = (), fix_cov: np.ndarray | None = None) -> None:
+        """A new keyframe (initialised at its registered pose) with its odometry and registration factors."""
+        kf.T_map_base = orthonormalised(kf.T_map_base)
+        self.archive[kf.id] = kf
+        self.graph.add_keyframe(kf.id, kf.T_map_base)
+        if self._last_id is None:
+            self.graph.add_prior(kf.id, kf.T_map_base, np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
+        else:
+            prev = self.archive[self._last_id]
+            T = orthonormalised(invert(prev.T_map_base) @ kf.T_map_base)
+            self.graph.add_odometry(prev.id, kf.id, T, self._odometry_cov(T))
+            if fix_cov is not None:
+                cov = self._body_cov(fix_cov, kf.T_map_base)
+                for i in registered_to:
+                    if i in self.archive and i != kf.id:
+                        self.graph.add_registration(
+                            i, kf.id, orthonormalised(invert(self.archive[i].T_map_base) @ kf.T_map_base), cov)
+        self._last_id = kf.id
+
+    def loop_candidate(self, kf, exclude: set[int]):
+        """The old keyframe nearest to ``kf`` (within ``loop_radius_m``, looking within
+        ``loop_max_angle_rad`` the same way, at least ``loop_min_separation`` keyframes older, not in
+        ``exclude``), or None."""
+        c = self.config
+        x, y, yaw = planar_from_transform(kf.T_map_base)
+        best, best_d = None, np.inf
+        for old in self.archive.values():
+            if old.id in exclude or old.id > kf.id - c.loop_min_separation:
+                continue
+            ox, oy, oyaw = planar_from_transform(old.T_map_base)
+            d = float(np.hypot(x - ox, y - oy))
+            if d < min(best_d, c.loop_radius_m) and abs((yaw - oyaw + np.pi) % (2 * np.pi) - np.pi) < c.loop_max_angle_rad:
+                best, best_d = old, d
+        return best
+
+    def add_loop(self, old, kf, T_map_base_new: np.ndarray, cov_body: np.ndarray) -> int:
+        return self.graph.add_registration(old.id, kf.id, orthonormalised(invert(old.T_map_base) @ T_map_base_new),
+                                           cov_body)
+
+    # ------------------------------------------------------------------------ optimising
+    def optimise(self, newest_id: int) -> np.ndarray:
+        """Optimise and move every keyframe to its graph pose; returns the newest keyframe's correction
+        C (T_new = C · T_old, map frame), which the caller applies to its current estimate."""
+        before = self.archive[newest_id].T_map_base.copy()
+        self.graph.optimise()
+        for kf_id, T in self.graph.poses().items():
+            kf = self.archive.get(kf_id)
+            if kf is not None and not np.allclose(T, kf.T_map_base, atol=1e-9):
+                kf.T_map_base = T
+                kf.points_map = transform_points(T, kf.points.astype(np.float64)).astype(np.float32)
+        return self.archive[newest_id].T_map_base @ invert(before)
+
+    def drop_if_outvoted(self, handle: int) -> bool:
+        """Remove a factor the optimised graph down-weighted (an outlier); True if it was removed."""
+        rep = self.graph.report(handle)
+        if rep.weight < self.graph.downweight_below:
+            self.graph.remove_factor(handle)
+            return True
+        return False
+
+
+__all__ = ["KeyframeGraph", "LoopClosure", "PoseGraphError"]
