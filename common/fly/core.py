@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import cv2
@@ -35,6 +35,9 @@ from common.images import frame_images
 from common.pose_buffer import PoseBuffer
 
 log = logging.getLogger("flyslam.evolver")
+
+
+NO_ODOMETRY_MIN_GENERATIONS = 30
 
 
 @dataclass
@@ -160,7 +163,13 @@ class EvolverCore:
         self._left_grey = left if left.ndim == 2 else cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
         t_ready = self.clock()
         if isinstance(self.settle, SettlePolicy):
-            generations = settle(evolver, reference, self.settle)
+            policy = self.settle
+            if T_odom_cam is None:
+                # No odometry yet (a camera without wheels before the localiser's first fixes): the flies
+                # were not moved with the camera and must re-converge, so this frame gets 4× the budget.
+                policy = replace(policy, budget_s=4 * policy.budget_s,
+                                 min_generations=max(policy.min_generations, NO_ODOMETRY_MIN_GENERATIONS))
+            generations = settle(evolver, reference, policy)
         else:
             evolver.step(int(self.settle))
             generations = int(self.settle)

@@ -205,7 +205,9 @@ def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list
     s = 0.5 ** level
     fx, fy = K[0, 0] * s, K[1, 1] * s
     cx, cy = (K[0, 2] + 0.5) * s - 0.5, (K[1, 2] + 0.5) * s - 0.5
-    z_med = float(np.median(P[:, 2]))
+    # the fitter half's median depth: young flies, drawn uniform in 1/z, sit mostly near the camera
+    fit = w >= np.median(w)
+    z_med = float(np.median(P[fit, 2]))
     step_px = 1.5
 
     def axis(half, step):
