@@ -9,7 +9,11 @@ numpy arrays travel as ``{"dtype": "uint8", "shape": [480, 640, 3], "data": <byt
 encoding, so a 640×480 stereo pair costs one memcpy each way.
 
 Decoding *validates* and raises a subclass of :class:`DecodeError` for anything wrong — truncated bytes,
-wrong types, missing fields, unknown schema or major version, shape not matching the data, absurd sizes.
+wrong types, missing fields, unknown schema or major version, shape not matching the data, absurd sizes —
+and for values that are well-typed but meaningless (:class:`InvalidValue`): seq outside [0, 2⁵³], a
+negative stamp, any integer field outside int64, and whatever a schema's ``validate()`` method refuses
+(non-finite numbers, positions beyond ``MAX_WORLD_M``, empty images, a non-positive focal length...).
+A schema's ``REQUIRED_FIELDS`` names fields that must be on the wire although they have a default.
 Services catch ``DecodeError``, count it and carry on; nothing malformed ever escapes as another exception.
 
 A schema is a dataclass registered with :func:`schema`. Its fields are typed with the small vocabulary
@@ -64,11 +68,26 @@ class TooLarge(DecodeError):
     """A payload, array or list exceeds the configured sanity limits."""
 
 
+class InvalidValue(DecodeError):
+    """Well-typed but meaningless: a non-finite or absurd number, a negative stamp, an empty or
+    mismatched image, a non-positive focal length... (a schema's ``validate`` says which)."""
+
+
 # Sanity limits: far above any legitimate message, far below what would hurt a 24 GiB machine.
 MAX_PAYLOAD_BYTES = 256 * 1024 * 1024
 MAX_ARRAY_BYTES = 128 * 1024 * 1024
 MAX_ARRAY_NDIM = 4
 MAX_LIST_LEN = 100_000
+
+# Meaning limits. MAX_WORLD_M bounds every position, translation and target in a world frame (map, odom,
+# base_link); fly positions (camera frame, drawn out to ~10⁶ × the nearest depth when depth_max = inf)
+# get MAX_FLY_RANGE_M, which still keeps a grid index of them far inside int64. MAX_COUNT bounds seq
+# and the count fields schemas name (beyond 2⁵³ a float64 counter can no longer add 1); every integer
+# field must fit in int64 (stamps are int64 ns, ~1.7e18 today).
+MAX_WORLD_M = 1e6
+MAX_FLY_RANGE_M = 1e9
+MAX_COUNT = 2 ** 53
+MAX_STAMP_NS = 2 ** 63 - 1
 
 ALLOWED_DTYPES = {"uint8", "uint16", "int16", "int32", "int64", "float32", "float64", "bool"}
 
@@ -218,6 +237,8 @@ def _decode_scalar(value: Any, tp, where: str):
     if tp is int:
         if not isinstance(value, int) or isinstance(value, bool):
             raise WrongType(f"{where}: expected int, got {type(value).__name__}")
+        if not -MAX_STAMP_NS - 1 <= value <= MAX_STAMP_NS:
+            raise InvalidValue(f"{where}: {value} does not fit in int64")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -267,7 +288,17 @@ def _decode_struct(obj: Any, cls, where: str):
             kwargs[f.name] = _decode_struct(value, tp, fwhere)
         else:
             kwargs[f.name] = _decode_scalar(value, tp, fwhere)
-    return cls(**kwargs)
+    missing = [name for name in getattr(cls, "REQUIRED_FIELDS", ()) if name not in kwargs]
+    if missing:
+        raise MissingField(f"{where}.{missing[0]} is missing")
+    out = cls(**kwargs)
+    validate = getattr(out, "validate", None)
+    if validate is not None:
+        try:
+            validate()
+        except InvalidValue as e:
+            raise InvalidValue(f"{where}: {e}") from None
+    return out
 
 
 def peek_schema(payload: bytes) -> tuple[str, int]:
@@ -323,9 +354,41 @@ def decode(payload: bytes, expected: type | tuple[type, ...] | None = None):
         raise WrongType("envelope.seq and envelope.stamp_ns must be integers")
     if not isinstance(frame_id, str):
         raise WrongType("envelope.frame_id must be a string")
+    if not 0 <= seq <= MAX_COUNT:
+        raise InvalidValue(f"envelope.seq {seq} is outside [0, 2⁵³]")
+    if not 0 <= stamp <= MAX_STAMP_NS:
+        raise InvalidValue(f"envelope.stamp_ns {stamp} is negative or beyond int64")
     msg = _decode_struct(obj, cls, name)
     msg.header = Envelope(seq=seq, stamp_ns=stamp, frame_id=frame_id)
     return msg
+
+
+# ------------------------------------------------------------------------- meaning checks (validate)
+
+
+def check_finite(where: str, value, limit: float | None = None, allow_neg_inf: bool = False) -> None:
+    """Raise InvalidValue unless every element of ``value`` is finite (−inf too with ``allow_neg_inf``)
+    and, with ``limit``, within ±limit."""
+    a = np.asarray(value, dtype=float)
+    bad = ~np.isfinite(a)
+    if allow_neg_inf:
+        bad &= ~np.isneginf(a)
+    if bad.any():
+        raise InvalidValue(f"{where} is not finite ({a[bad].flat[0]})")
+    if limit is not None and a.size and np.nanmax(np.abs(np.where(np.isneginf(a), 0.0, a))) > limit:
+        raise InvalidValue(f"{where} is beyond ±{limit:g}")
+
+
+def check_positive(where: str, value: float) -> None:
+    """Raise InvalidValue unless ``value`` is a finite number > 0."""
+    if not (math.isfinite(value) and value > 0):
+        raise InvalidValue(f"{where} must be > 0, got {value}")
+
+
+def check_range(where: str, value: float, lo: float, hi: float) -> None:
+    """Raise InvalidValue unless lo <= value <= hi (NaN fails)."""
+    if not lo <= value <= hi:
+        raise InvalidValue(f"{where} = {value} is outside [{lo:g}, {hi:g}]")
 
 
 def header(seq: int = 0, stamp_ns: int = 0, frame_id: str = "") -> Envelope:

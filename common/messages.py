@@ -15,10 +15,11 @@ from typing import Optional
 import numpy as np
 
 from common.codec import (  # noqa: F401  (re-exported: the codec's public names)
-    ALLOWED_DTYPES, ENVELOPE_KEYS, MAX_ARRAY_BYTES, MAX_ARRAY_NDIM, MAX_LIST_LEN, MAX_PAYLOAD_BYTES, SCHEMAS,
-    Array, DecodeError, Envelope, MalformedPayload, Message, MissingField, ShapeMismatch, TooLarge,
-    UnknownSchema, UnsupportedVersion, WrongType, _header_field, array_field, decode, encode, header,
-    peek_schema, required, schema)
+    ALLOWED_DTYPES, ENVELOPE_KEYS, MAX_ARRAY_BYTES, MAX_ARRAY_NDIM, MAX_COUNT, MAX_FLY_RANGE_M, MAX_LIST_LEN,
+    MAX_PAYLOAD_BYTES, MAX_STAMP_NS, MAX_WORLD_M, SCHEMAS, Array, DecodeError, Envelope, InvalidValue,
+    MalformedPayload, Message, MissingField, ShapeMismatch, TooLarge, UnknownSchema, UnsupportedVersion,
+    WrongType, _header_field, array_field, check_finite, check_positive, check_range, decode, encode,
+    header, peek_schema, required, schema)
 
 # ------------------------------------------------------------------------------------- schemas
 # Frame names (REP-105 tree): map -> odom -> base_link -> camera_left -> camera_left_optical, ...
@@ -27,6 +28,21 @@ MAP, ODOM, BASE_LINK = "map", "odom", "base_link"
 CAMERA_LEFT_OPTICAL = "camera_left_optical"
 
 IMAGE_SHAPES = ((None, None), (None, None, 3))
+FRAME_ENCODINGS = {"rgb8": 3, "mono8": 2, "jpeg": 1, "png": 1}   # encoding -> ndim (as common.images)
+MAX_RANGE_M = 1e4        # sonar limits, beyond any transducer
+MAX_SPEED = 1e3          # |m/s| and |rad/s| of a command, beyond any robot
+
+
+def _check_quaternion(where: str, q) -> None:
+    check_finite(where, q)
+    if not 0.5 < float(np.dot(q, q)) < 2.0:
+        raise InvalidValue(f"{where} is not a unit quaternion (norm² {float(np.dot(q, q)):.3g})")
+
+
+def _check_covariance(where: str, cov) -> None:
+    check_finite(where, cov, MAX_WORLD_M ** 2)
+    if np.any(np.diag(cov) < 0):
+        raise InvalidValue(f"{where} has a negative variance")
 
 
 @schema("StereoFrame")
@@ -38,6 +54,18 @@ class StereoFrame(Message):
     encoding: str = "rgb8"
     header: Envelope = _header_field()
 
+    def validate(self) -> None:
+        ndim = FRAME_ENCODINGS.get(self.encoding)
+        if ndim is None:
+            raise InvalidValue(f"unknown encoding {self.encoding!r} (expected {', '.join(FRAME_ENCODINGS)})")
+        for side, img in (("left", self.left), ("right", self.right)):
+            if img.ndim != ndim:
+                raise InvalidValue(f"{side}: a {self.encoding} image must have {ndim} dimensions, got {img.shape}")
+            if img.size == 0:
+                raise InvalidValue(f"{side} image is empty {img.shape}")
+        if ndim > 1 and self.left.shape != self.right.shape:
+            raise InvalidValue(f"left {self.left.shape} and right {self.right.shape} images differ in size")
+
 
 @schema("CameraInfo")
 class CameraInfo:
@@ -47,6 +75,13 @@ class CameraInfo:
     D: np.ndarray = array_field("float64", (None,))
     R: np.ndarray = array_field("float64", (3, 3))
     P: np.ndarray = array_field("float64", (3, 4))
+
+    def validate(self) -> None:
+        for name in ("K", "D", "R", "P"):
+            check_finite(name, getattr(self, name))
+        for name, m in (("K", self.K), ("P", self.P)):
+            if not (m[0, 0] > 0 and m[1, 1] > 0):
+                raise InvalidValue(f"{name}: focal lengths ({m[0, 0]}, {m[1, 1]}) must be > 0")
 
 
 @schema("StereoCalibration")
@@ -60,6 +95,12 @@ class StereoCalibrationMsg(Message):
     baseline_m: float = 0.0
     T_base_camera: np.ndarray = array_field("float64", (4, 4))  # left optical frame in base_link
     header: Envelope = _header_field()
+
+    def validate(self) -> None:
+        check_range("width", self.width, 1, 1 << 16)
+        check_range("height", self.height, 1, 1 << 16)
+        check_positive("baseline_m", self.baseline_m)
+        check_finite("T_base_camera", self.T_base_camera, MAX_WORLD_M)
 
 
 @schema("WheelOdometry")
@@ -75,6 +116,18 @@ class WheelOdometry(Message):
     covariance: Optional[np.ndarray] = array_field("float64", (3, 3), optional=True)
     header: Envelope = _header_field()
 
+    def validate(self) -> None:
+        for name in ("ticks_per_rev", "wheel_radius_m", "track_width_m"):
+            check_range(name, getattr(self, name), 0.0, MAX_WORLD_M)
+        # A non-finite wheel speed is let through: the odometry model flags it and republishes the held
+        # pose (fusion/odom answers every reading), so it cannot reach the fused state.
+        if self.wheel_speeds is not None and np.any(np.abs(self.wheel_speeds) > MAX_WORLD_M):
+            raise InvalidValue(f"wheel_speeds beyond ±{MAX_WORLD_M:g}")
+        if self.pose_xyyaw is not None:
+            check_finite("pose_xyyaw", self.pose_xyyaw, MAX_WORLD_M)
+        if self.covariance is not None:
+            _check_covariance("covariance", self.covariance)
+
 
 @schema("SonarScan")
 class SonarScan(Message):
@@ -86,6 +139,16 @@ class SonarScan(Message):
     min_range_m: float = 0.0
     max_range_m: float = 0.0
     header: Envelope = _header_field()
+
+    def validate(self) -> None:
+        if len(self.ranges) != len(self.transducer_poses):
+            raise InvalidValue(f"{len(self.transducer_poses)} transducer poses but {len(self.ranges)} ranges")
+        check_finite("transducer_poses", self.transducer_poses, MAX_WORLD_M)
+        echoes = self.ranges[~np.isnan(self.ranges)]
+        if not np.all((echoes >= 0) & (echoes <= MAX_RANGE_M)):
+            raise InvalidValue(f"ranges must be NaN (no echo) or in [0, {MAX_RANGE_M:g}] m")
+        for name in ("beam_width_rad", "min_range_m", "max_range_m"):
+            check_range(name, getattr(self, name), 0.0, MAX_RANGE_M)
 
 
 @schema("FlyPopulation")
@@ -103,6 +166,19 @@ class FlyPopulation(Message):
     image: Optional[np.ndarray] = array_field("uint8", (None, None), optional=True)
     header: Envelope = _header_field()
 
+    def validate(self) -> None:
+        if len(self.fitness) != len(self.positions):
+            raise InvalidValue(f"{len(self.positions)} positions but {len(self.fitness)} fitness values")
+        check_finite("positions", self.positions, MAX_FLY_RANGE_M)
+        if np.any(np.isnan(self.fitness)) or np.any(np.isposinf(self.fitness)):
+            raise InvalidValue("fitness must be finite or -inf (outside the images)")
+        check_range("generation", self.generation, 0, MAX_COUNT)
+        check_range("source_seq", self.source_seq, 0, MAX_COUNT)
+        if self.T_odom_camera is not None:
+            check_finite("T_odom_camera", self.T_odom_camera, MAX_WORLD_M)
+        if self.image is not None and self.image.size == 0:
+            raise InvalidValue(f"image is empty {self.image.shape}")
+
 
 @schema("PoseEstimate")
 class PoseEstimate(Message):
@@ -116,6 +192,12 @@ class PoseEstimate(Message):
     source_seq: int = 0
     header: Envelope = _header_field()
 
+    def validate(self) -> None:
+        check_finite("position", self.position, MAX_WORLD_M)
+        _check_quaternion("orientation", self.orientation)
+        _check_covariance("covariance", self.covariance)
+        check_range("source_seq", self.source_seq, 0, MAX_COUNT)
+
 
 @schema("Transform")
 class TransformMsg(Message):
@@ -124,6 +206,10 @@ class TransformMsg(Message):
     translation: np.ndarray = array_field("float64", (3,))
     rotation: np.ndarray = array_field("float64", (4,))  # quaternion xyzw
     header: Envelope = _header_field()
+
+    def validate(self) -> None:
+        check_finite("translation", self.translation, MAX_WORLD_M)
+        _check_quaternion("rotation", self.rotation)
 
 
 @schema("Keyframe")
@@ -135,6 +221,16 @@ class Keyframe:
     orientation: np.ndarray = array_field("float64", (4,))
     points: np.ndarray = array_field("float32", (None, 3))
     fitness: np.ndarray = array_field("float32", (None,))
+
+    def validate(self) -> None:
+        check_range("stamp_ns", self.stamp_ns, 0, MAX_STAMP_NS)
+        check_finite("position", self.position, MAX_WORLD_M)
+        _check_quaternion("orientation", self.orientation)
+        if len(self.fitness) != len(self.points):
+            raise InvalidValue(f"{len(self.points)} points but {len(self.fitness)} fitness values")
+        check_finite("points", self.points, MAX_FLY_RANGE_M)
+        if np.any(np.isnan(self.fitness)) or np.any(np.isposinf(self.fitness)):
+            raise InvalidValue("fitness must be finite or -inf")
 
 
 @schema("FlyMap")
@@ -153,6 +249,11 @@ class VelocityCommand(Message):
     stop: bool = False
     reason: str = ""
     header: Envelope = _header_field()
+    REQUIRED_FIELDS = ("linear_mps", "angular_radps")
+
+    def validate(self) -> None:
+        check_range("linear_mps", self.linear_mps, -MAX_SPEED, MAX_SPEED)
+        check_range("angular_radps", self.angular_radps, -MAX_SPEED, MAX_SPEED)
 
 
 @schema("Target")
@@ -162,6 +263,12 @@ class Target(Message):
     y: float = 0.0
     radius_m: float = 0.3
     header: Envelope = _header_field()
+    REQUIRED_FIELDS = ("x", "y")
+
+    def validate(self) -> None:
+        check_range("x", self.x, -MAX_WORLD_M, MAX_WORLD_M)
+        check_range("y", self.y, -MAX_WORLD_M, MAX_WORLD_M)
+        check_range("radius_m", self.radius_m, 0.0, MAX_WORLD_M)
 
 
 @schema("HarmonicField")
@@ -172,6 +279,12 @@ class HarmonicField(Message):
     resolution_m: float = 0.05
     path_xy: Optional[np.ndarray] = array_field("float64", (None, 2), optional=True)
     header: Envelope = _header_field()
+
+    def validate(self) -> None:
+        check_finite("origin_xy", self.origin_xy, MAX_WORLD_M)
+        check_positive("resolution_m", self.resolution_m)
+        if self.path_xy is not None:
+            check_finite("path_xy", self.path_xy, MAX_WORLD_M)
 
 
 @schema("Heartbeat")
@@ -185,6 +298,15 @@ class Heartbeat(Message):
     rates: dict = field(default_factory=dict)      # name -> per-second rate
     counters: dict = field(default_factory=dict)   # name -> count (dropped, rejected, ...)
     header: Envelope = _header_field()
+
+    def validate(self) -> None:
+        check_range("pid", self.pid, 0, 1 << 31)
+        check_range("progress", self.progress, 0, MAX_COUNT)
+        for name, table in (("rates", self.rates), ("counters", self.counters)):
+            for key, value in table.items():
+                if not isinstance(value, (int, float)) or isinstance(value, bool):
+                    raise InvalidValue(f"{name}[{key!r}] = {value!r} is not a number")
+                check_range(f"{name}[{key!r}]", value, -MAX_COUNT if name == "rates" else 0, MAX_COUNT)
 
 
 @schema("EvolverTrace")
@@ -203,12 +325,23 @@ class EvolverTrace(Message):
     quality: float = 0.0
     header: Envelope = _header_field()
 
+    def validate(self) -> None:
+        for name in ("take_ns", "decoded_ns", "ready_ns", "published_ns"):
+            check_range(name, getattr(self, name), 0, MAX_STAMP_NS)
+        check_range("generations", self.generations, 0, MAX_COUNT)
+
 
 @schema("DepthImage")
 class DepthImage(Message):
     """Ground-truth depth (metres, Z in the left optical frame; inf = nothing) from a simulator."""
     depth: np.ndarray = array_field("float32", (None, None))
     header: Envelope = _header_field()
+
+    def validate(self) -> None:
+        if self.depth.size == 0:
+            raise InvalidValue(f"depth image is empty {self.depth.shape}")
+        if np.any(np.isnan(self.depth)) or np.any(self.depth < 0):
+            raise InvalidValue("depth must be >= 0 or inf (nothing)")
 
 
 # ----------------------------------------------------------------------------- calibration glue

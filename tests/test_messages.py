@@ -148,3 +148,20 @@ def test_mutated_payloads_only_ever_raise_decode_errors():
             m.decode(bytes(data[: rng.integers(1, len(data) + 1)]))
         except m.DecodeError:
             pass
+
+
+def test_every_schema_with_numbers_or_images_checks_their_meaning():
+    """Shape alone let a 1e308 pose or an empty image through; every such schema has a validate()."""
+    containers = {"flyslam.FlyMap"}            # its keyframes validate themselves
+    missing = {name for name, cls in m.SCHEMAS.items() if not hasattr(cls, "validate")} - containers
+    assert missing == set()
+
+
+def test_validation_errors_are_decode_errors_naming_the_schema_and_field():
+    bad = m.Target(x=float("nan"), y=0.0)
+    with pytest.raises(m.DecodeError, match=r"flyslam\.Target: x = nan"):
+        m.decode(m.encode(bad))
+    kf = m.Keyframe(id=0, stamp_ns=0, position=np.array([1e9, 0, 0]), orientation=np.array([0, 0, 0, 1.0]),
+                    points=np.zeros((1, 3), np.float32), fitness=np.zeros(1, np.float32))
+    with pytest.raises(m.InvalidValue, match=r"keyframes\[0\]: position"):
+        m.decode(m.encode(m.FlyMap(keyframes=[kf])))
