@@ -128,3 +128,47 @@ def test_flagged_odometry_reading_republishes_the_held_pose_with_the_reason():
     np.testing.assert_allclose(odom.position, odom0.position)
     assert odom.header.stamp_ns == odom0.header.stamp_ns
     assert core.counters.flagged == {"non_finite": 1}
+
+
+def test_a_fix_at_1e308_is_rejected_before_and_after_initialisation_and_never_poisons_the_pose():
+    core = FusionCore()
+    drive(core, 0, 20)
+    wild = core.on_slam_pose(slam_pose([1e308, 0.0, 0.0], 0.01, 0.01, stamp(19)))
+    assert not wild.accepted and not core.filter.initialised
+    assert core.on_slam_pose(slam_pose([0.0, 0.0, 0.0], 0.01, 0.01, stamp(19))).accepted
+    drive(core, 20, 22)
+    for i, x in ((21, 1e308), (21, -1e300)):
+        assert not core.on_slam_pose(slam_pose([x, 0.0, 0.0], 0.01, 0.01, stamp(i))).accepted
+    _, pose = drive(core, 22, 23)
+    assert np.all(np.isfinite(pose.position)) and abs(planar(pose)[0]) < 1.0
+
+
+def test_a_nan_mahalanobis_distance_is_a_rejection():
+    core = FusionCore()
+    drive(core, 0, 10)
+    assert core.on_slam_pose(slam_pose([0.0, 0.0, 0.0], 0.01, 0.01, stamp(9))).accepted
+    drive(core, 10, 12)
+    core.filter.cov = np.full((3, 3), np.inf)       # an overflowed prior: every innovation's d² is NaN
+    r = core.filter.correct_pose(stamp(11), [0.1, 0.0, 0.0], np.eye(3) * 1e-4)
+    assert not r.accepted and "rejected" in r.reason
+
+
+def test_the_first_fix_is_gated_against_the_prior_but_a_plausible_one_initialises():
+    far = FusionCore()
+    drive(far, 0, 10)
+    assert not far.on_slam_pose(slam_pose([5e3, 0.0, 0.0], 0.01, 0.01, stamp(9))).accepted
+    near = FusionCore()
+    drive(near, 0, 10)
+    assert near.on_slam_pose(slam_pose([20.0, -5.0, 2.0], 0.01, 0.01, stamp(9))).accepted
+
+
+def test_rejected_fixes_that_disagree_with_each_other_never_re_initialise_the_filter():
+    core = FusionCore(config=FilterConfig(max_rejections=3))
+    drive(core, 0, 20)
+    assert core.on_slam_pose(slam_pose([0.0, 0.0, 0.0], 0.01, 0.01, stamp(19))).accepted
+    for k, i in enumerate(range(20, 26)):
+        drive(core, i, i + 1)
+        wild = core.filter.odom_at(stamp(i)) + [5.0 * (k + 1) * (-1) ** k, 3.0 * k, 0.0]
+        assert not core.on_slam_pose(slam_pose(wild, 0.01, 0.01, stamp(i))).accepted
+    _, pose = drive(core, 26, 27)
+    assert abs(planar(pose)[0]) < 1.0

@@ -16,10 +16,14 @@ the EKF weighs each correction by both covariances for the price of a few 3×3 p
   ``slam/pose`` (PoseEstimate) brings its own covariance; ``slam/map_to_odom`` (TransformMsg, no
   covariance) is turned into ``T_map_odom ⊕ odom_t`` with a configured covariance.  When the localiser
   publishes both for one frame, the second (same stamp) is skipped so a fix is not counted twice.
-* Gating: an innovation beyond the χ² gate is rejected (and reported); after ``max_rejections``
-  consecutive rejections the filter re-initialises on the correction (the localiser relocalised: a
-  long-lived disagreement means the filter is the one that is wrong).
+* Gating: an innovation beyond the χ² gate, or one whose Mahalanobis² is not a number, is rejected
+  (and reported); after ``max_rejections`` consecutive rejections that agree with each other (the
+  map→odom each implies within the same gate) the filter re-initialises on the newest (the localiser
+  relocalised: a long-lived, consistent disagreement means the filter is the one that is wrong; rejected
+  fixes that disagree among themselves are noise and never take over).
 * Before the first correction the map pose is the odom pose (map ≡ odom) and status 'odometry only'.
+  The first correction is gated too, against that prior widened by ``prior_sigma`` (how far the map
+  frame may start from odom), so a wild first fix cannot initialise the filter.
 """
 from __future__ import annotations
 
@@ -30,8 +34,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.fusion.planar import (between, compose, compose_jacobian_first, compose_jacobian_second, drive_step,
-                                  interpolate)
+                                  interpolate, inverse)
 from common.geometry import wrap_angle
+
+
+def _mahalanobis2(nu, S) -> float:
+    """νᵀ S⁻¹ ν of a planar innovation (yaw wrapped); NaN when S is singular or the numbers overflow."""
+    nu = np.array(nu, float)
+    nu[2] = float(wrap_angle(nu[2]))
+    try:
+        with np.errstate(all="ignore"):
+            return float(nu @ np.linalg.solve(S, nu))
+    except np.linalg.LinAlgError:
+        return float("nan")
 
 
 class CorrectionError(ValueError):
@@ -41,12 +56,15 @@ class CorrectionError(ValueError):
 @dataclass(frozen=True)
 class FilterConfig:
     """``map_to_odom_sigma``: (σ_xy m, σ_yaw rad) assumed for a map→odom transform (it has no covariance).
-    ``gate_chi2``: Mahalanobis² gate (16.27 = χ²(3) at 99.9 %). ``stale_after_s``: 'ok' turns into
+    ``gate_chi2``: Mahalanobis² gate (16.27 = χ²(3) at 99.9 %). ``prior_sigma``: (σ_xy m, σ_yaw rad) of
+    the map frame about odom before the first correction, added to the prior the first fix is gated
+    against. ``stale_after_s``: 'ok' turns into
     'odometry only' when the last fused correction is older than this. ``history_s``: how far back a
     delayed correction may refer."""
     map_to_odom_sigma: tuple[float, float] = (0.05, 0.035)
     gate_chi2: float = 16.27
     max_rejections: int = 3
+    prior_sigma: tuple[float, float] = (100.0, 3.1416)
     stale_after_s: float = 5.0
     history_s: float = 10.0
     min_variance: float = 1e-8
@@ -73,6 +91,7 @@ class MapPoseFilter:
         self._odom: deque[np.ndarray] = deque()
         self._increments: deque[tuple[float, float, float, float, float]] = deque()  # dl, dr, b, var_l, var_r
         self._fused_stamps: deque[int] = deque(maxlen=64)
+        self._rejected: list[tuple[np.ndarray, np.ndarray]] = []   # implied map→odom and its covariance
 
     # ---------------------------------------------------------------------------- odometry side
     def predict(self, stamp_ns: int, odom_pose, odom_cov, dl: float, dr: float, track_width: float,
@@ -139,17 +158,18 @@ class MapPoseFilter:
         z = compose(pose, delta)
         J1, J2 = compose_jacobian_first(pose, delta), compose_jacobian_second(pose)
         R = J1 @ cov @ J1.T + J2 @ delta_cov @ J2.T + self.config.min_variance * np.eye(3)
+        prior_cov = self.cov
+        if not self.initialised:
+            sxy, syaw = self.config.prior_sigma
+            prior_cov = self.cov + np.diag([sxy ** 2, sxy ** 2, syaw ** 2])
+        S = prior_cov + R
+        d2 = _mahalanobis2(z - self.pose, S)
+        if not d2 <= self.config.gate_chi2:    # NaN is a rejection
+            return self._reject(stamp_ns, z, R, d2)
         if not self.initialised:
             return self._reset(stamp_ns, z, R, "initialised")
         nu = z - self.pose
         nu[2] = float(wrap_angle(nu[2]))
-        S = self.cov + R
-        d2 = float(nu @ np.linalg.solve(S, nu))
-        if d2 > self.config.gate_chi2:
-            self.rejections += 1
-            if self.rejections >= self.config.max_rejections:
-                return self._reset(stamp_ns, z, R, f"re-initialised after {self.rejections} rejected corrections")
-            return CorrectionResult(False, f"correction rejected (Mahalanobis² {d2:.1f} > {self.config.gate_chi2:g})", d2)
         K = self.cov @ np.linalg.inv(S)
         IK = np.eye(3) - K
         self.pose = self.pose + K @ nu
@@ -157,8 +177,19 @@ class MapPoseFilter:
         self.cov = IK @ self.cov @ IK.T + K @ R @ K.T      # Joseph form: stays symmetric PSD
         self.cov = 0.5 * (self.cov + self.cov.T)
         self.rejections = 0
+        self._rejected.clear()
         self._mark(stamp_ns)
         return CorrectionResult(True, "fused", d2)
+
+    def _reject(self, stamp_ns: int, z, R, d2: float) -> CorrectionResult:
+        """Count a gated-out correction; re-initialise on it when the last ``max_rejections`` agree."""
+        m2o = compose(z, inverse(self._odom[-1]))
+        self._rejected = [(a, c) for a, c in self._rejected if _mahalanobis2(m2o - a, R + c) <= self.config.gate_chi2]
+        self._rejected.append((m2o, R))
+        self.rejections = len(self._rejected)
+        if self.rejections >= self.config.max_rejections:
+            return self._reset(stamp_ns, z, R, f"re-initialised after {self.rejections} rejected corrections")
+        return CorrectionResult(False, f"correction rejected (Mahalanobis² {d2:.1f} > {self.config.gate_chi2:g})", d2)
 
     def correct_map_to_odom(self, stamp_ns: int, map_to_odom) -> CorrectionResult:
         """Fuse a planar map→odom transform stated at ``stamp_ns`` (configured covariance)."""
@@ -173,6 +204,7 @@ class MapPoseFilter:
         self.pose, self.cov = np.array(z, float), np.array(R, float)
         self.initialised = True
         self.rejections = 0
+        self._rejected.clear()
         self._mark(stamp_ns)
         return CorrectionResult(True, reason)
 
