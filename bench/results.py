@@ -72,6 +72,17 @@ KEY_FIGURES: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("SGBM", "sgbm_time_s", "s"),
         ("inliers at SGBM's time", "inliers_at_sgbm_time", "share"),
     ]),
+    "real": ("real KITTI clip 00, frames 0-99 (84 m): `flyslam eval` defaults vs an ORB + PnP stereo VO", [
+        ("flyslam ATE", "clips.kitti-00-frames-0-99@0:100.flyslam_ate_m", "m"),
+        ("reference ATE", "clips.kitti-00-frames-0-99@0:100.reference_ate_m", "m"),
+        ("flyslam drift", "clips.kitti-00-frames-0-99@0:100.flyslam_drift_pct", "%"),
+        ("reference drift", "clips.kitti-00-frames-0-99@0:100.reference_drift_pct", "%"),
+        ("flyslam", "clips.kitti-00-frames-0-99@0:100.flyslam_fps", "frames/s"),
+        ("frames 0-49 ATE: flyslam", "clips.kitti-00-frames-0-99@0:50.flyslam_ate_m", "m"),
+        ("reference", "clips.kitti-00-frames-0-99@0:50.reference_ate_m", "m"),
+        ("frames 50-99 ATE: flyslam", "clips.kitti-00-frames-0-99@50:100.flyslam_ate_m", "m"),
+        ("reference", "clips.kitti-00-frames-0-99@50:100.reference_ate_m", "m"),
+    ]),
     "registration": ("pseudo-distance δ and registration, 5,000 flies", [
         ("δ exact (numba)", "exact_numba_delta_ms", "ms"),
         ("δ fast", "fast_delta_ms", "ms"),
