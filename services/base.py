@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import logging
+from contextlib import contextmanager
 from typing import Callable
 
 from common.bus import Node, add_bus_arguments, bus_options, setup_logging
@@ -21,6 +23,21 @@ def config_or_exit(cls, args: argparse.Namespace, only=None, rename=None, **extr
         return config_from_args(cls, args, only, rename, **extra)
     except ValueError as e:
         raise SystemExit(f"flyslam: {e}") from None
+
+
+@contextmanager
+def survive(node: Node, what: str, log: logging.Logger):
+    """Run one message's (or one cycle's) processing so that an exception costs that message only: it is
+    counted as ``step_errors`` and ``<what>_errors`` and logged (the first 5, then every 100th), and the
+    service's loop carries on. Only ``Exception``: SystemExit and KeyboardInterrupt still end the process."""
+    try:
+        yield
+    except Exception as e:  # noqa: BLE001 - a service's loop must survive any single message
+        node.counters.add("step_errors")
+        node.counters.add(f"{what}_errors")
+        n = node.counters.get(f"{what}_errors")
+        if n <= 5 or n % 100 == 0:
+            log.warning("%s failed: %s: %s (%d so far)", what, type(e).__name__, str(e).splitlines()[0] if str(e) else "", n)
 
 
 def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node, argparse.Namespace], int | None],

@@ -161,7 +161,7 @@ def log_batch(node, viz: RerunLogger, batch) -> None:
             else:
                 viz.handle(stream, msg)
             node.progress += 1
-        except ValueError as e:
+        except Exception as e:  # noqa: BLE001 - cv2.error, rerun errors...: one message must not end the bridge
             node.counters.add("view_errors")
             n = node.counters.get("view_errors")
             if n <= 5 or n % 100 == 0:

@@ -19,7 +19,7 @@ from common import streams as S
 from common.config_args import add_config_arguments
 from common.fly import EvolverConfig
 from common.fly.core import EvolverCore, EvolverServiceConfig, FrameResult
-from services.base import config_or_exit, run_service, service_parser
+from services.base import config_or_exit, run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.evolver")
 EVOLVER_FLAGS = ["population", "depth_min", "depth_max"]
@@ -56,20 +56,22 @@ def body(node, args) -> int:
             window = (time.monotonic(), core.generation)
         frame = frames.take()
         if frame is not None:
-            if calibration.get() is not None:
-                core.on_calibration(calibration.get())
-            if publish_frame(node, core.on_frame(frame), frame, out, trace):
-                last_publish = time.monotonic()
-                node.rates["frames_skipped"] = float(frames.skipped)
+            with survive(node, "frame", log):
+                if calibration.get() is not None:
+                    core.on_calibration(calibration.get())
+                if publish_frame(node, core.on_frame(frame), frame, out, trace):
+                    last_publish = time.monotonic()
+                    node.rates["frames_skipped"] = float(frames.skipped)
         elif not core.has_population:
             node.sleep(0.005)
         else:   # between frames: evolve with a duty cycle, republish at the configured rate
             t0 = time.monotonic()
-            core.step()
+            with survive(node, "evolve", log):
+                core.step()
+                if time.monotonic() - last_publish >= 1.0 / run.publish_hz:
+                    out.publish(core.population())
+                    last_publish = time.monotonic()
             busy = time.monotonic() - t0
-            if time.monotonic() - last_publish >= 1.0 / run.publish_hz:
-                out.publish(core.population())
-                last_publish = time.monotonic()
             if run.duty < 1.0:
                 node.sleep(busy * (1.0 / max(run.duty, 0.05) - 1.0))
     return 0

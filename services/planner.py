@@ -18,7 +18,7 @@ from common import streams as S
 from common.config_args import add_config_arguments
 from common.planning import PlannerConfig
 from common.planning.core import PlannerCore, PlannerServiceConfig, velocity_command  # noqa: F401 (API)
-from services.base import config_or_exit, run_service, service_parser
+from services.base import config_or_exit, run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.planner")
 PLANNER_FLAGS = ["resolution", "robot_radius", "v_max", "omega_max", "slow_clearance_m", "unseen_half_life_s"]
@@ -54,13 +54,18 @@ def body(node, args) -> int:
     while not node.stopping:
         t_cycle = time.monotonic()
         if target is not None and target.get() is not None:
-            core.on_target(target.get())
+            with survive(node, "target", log):
+                core.on_target(target.get())
         if calibration.get() is not None:
-            core.on_calibration(calibration.get())
+            with survive(node, "calibration", log):
+                core.on_calibration(calibration.get())
         pop = populations.take()
         if pop is not None:
-            core.on_population(pop)
-        cmd = core.cycle(time.time_ns())
+            with survive(node, "population", log):
+                core.on_population(pop)
+        cmd = core.stop_command(time.time_ns(), "planner error")   # what the robot gets if the cycle fails
+        with survive(node, "cycle", log):
+            cmd = core.cycle(time.time_ns())
         cmd_pub.publish(cmd)
         if cmd.reason != last_reason:
             log.info("command: %s", cmd.reason)

@@ -241,3 +241,23 @@ def test_int64_nanosecond_stamps_inside_messages_are_accepted():
     now = time.time_ns()
     assert m.decode(m.encode(_keyframe(stamp_ns=now))).keyframes[0].stamp_ns == now
     assert m.decode(m.encode(_with_header(_pose(), stamp_ns=now))).header.stamp_ns == now
+
+
+def test_a_step_that_raises_is_counted_and_logged_and_the_loop_carries_on(caplog):
+    from types import SimpleNamespace
+    import logging
+    from common.bus import Counters
+    from services.base import survive
+    node, log = SimpleNamespace(counters=Counters()), logging.getLogger("flyslam.test")
+    done = []
+    for i in range(150):
+        with survive(node, "frame", log):
+            if i % 2:
+                raise OverflowError("cannot convert float infinity to integer")
+            done.append(i)
+    assert len(done) == 75 and node.counters.get("frame_errors") == 75 and node.counters.get("step_errors") == 75
+    warnings = [r for r in caplog.records if "frame failed" in r.getMessage()]
+    assert len(warnings) == 5 and "OverflowError" in warnings[0].getMessage()
+    with pytest.raises(SystemExit):
+        with survive(node, "frame", log):
+            raise SystemExit("flyslam: bad flag")
