@@ -3,7 +3,8 @@
 Takes ``flies/population`` (latest value), the odometry pose ``fusion/odom`` as prior and the latched
 ``stereo/calibration``; publishes ``slam/pose`` (base_link in map with covariance; the status says when
 a registration was rejected and odometry carried on) and ``slam/map_to_odom`` (REP-105), answers the
-queryable ``slam/map`` and writes the trajectory as TUM text (``--tum``). The state machine is
+queryable ``slam/map`` and writes the trajectory as TUM text (``--tum``) and the map as ``map.mcap`` next to it
+(every ``map_period_s`` and on exit, atomically); ``--map FILE`` starts from a saved map. The state machine is
 :class:`common.slam.core.LocaliserCore`, the same one ``flyslam eval`` runs.
 """
 from __future__ import annotations
@@ -12,12 +13,14 @@ import logging
 import sys
 import threading
 import time
+from pathlib import Path
 
 from common import messages as m
 from common import streams as S
 from common.config_args import add_config_arguments
 from common.slam import LocaliserConfig
 from common.slam.core import LocaliserCore, LocaliserOutput, LocaliserServiceConfig
+from common.slam.mapfile import MapFileError, load_map
 from common.trajectory import write_tum
 from services.base import config_or_exit, run_service, service_parser
 
@@ -38,7 +41,17 @@ def build_parser():
 
 def body(node, args) -> int:
     run = config_or_exit(LocaliserServiceConfig, args)
-    core = LocaliserCore(config_or_exit(LocaliserConfig, args, only=LOCALISER_FLAGS, rename=RENAME), seed=run.seed)
+    initial_map = None
+    if run.map:
+        try:
+            initial_map = load_map(run.map)
+        except MapFileError as e:
+            log.error("%s", e)
+            return 2
+        log.info("starting from %s: %d keyframes, %d edges", run.map, len(initial_map.keyframes), len(initial_map.edges))
+    core = LocaliserCore(config_or_exit(LocaliserConfig, args, only=LOCALISER_FLAGS, rename=RENAME), seed=run.seed,
+                         initial_map=initial_map)
+    map_path = Path(run.tum).parent / "map.mcap" if run.tum else None
     lock = threading.Lock()
 
     def on_odom(msg: m.PoseEstimate) -> None:
@@ -54,7 +67,7 @@ def body(node, args) -> int:
     node.queryable(S.SLAM_MAP, serve_map)
     populations = node.subscribe_latest(S.FLIES_POPULATION)
     pubs = node.publisher(S.SLAM_POSE), node.publisher(S.SLAM_MAP_TO_ODOM)
-    last_tum = time.monotonic()
+    last_tum = last_map = time.monotonic()
     while not node.stopping:
         pop = populations.wait(timeout=0.5)
         if pop is None:
@@ -68,10 +81,25 @@ def body(node, args) -> int:
         if run.tum and time.monotonic() - last_tum > run.tum_period_s:
             write_tum(run.tum, *core.trajectory())
             last_tum = time.monotonic()
+        if map_path is not None and time.monotonic() - last_map > run.map_period_s:
+            with lock:
+                save_map_logged(core, map_path, quiet=True)
+            last_map = time.monotonic()
     if run.tum and core.stamps:
         write_tum(run.tum, *core.trajectory())
         log.info("wrote %d poses to %s", len(core.stamps), run.tum)
+    if map_path is not None:
+        save_map_logged(core, map_path)
     return 0
+
+
+def save_map_logged(core: LocaliserCore, path: Path, quiet: bool = False) -> None:
+    """Write map.mcap; a failure (disk full, bad folder) is logged, never fatal."""
+    try:
+        if core.save_map(path) and not quiet:
+            log.info("wrote the map (%d keyframes) to %s", len(core.localiser.map_keyframes()), path)
+    except (MapFileError, OSError) as e:
+        log.warning("could not write the map to %s: %s", path, e)
 
 
 def publish(node, out: LocaliserOutput, pop: m.FlyPopulation, pose_pub, tf_pub) -> None:
