@@ -146,7 +146,28 @@ def make_config(opts: BusOptions) -> zenoh.Config:
         if not sep or not key:
             raise BusConfigError(f"--cfg expects KEY:JSON5 (e.g. 'scouting/multicast/enabled:true'), got {item!r}")
         insert("--cfg", item, key, value)
+    _check_secured(conf, opts.config)
     return conf
+
+
+TLS_FILES = ("root_ca_certificate", "listen_private_key", "listen_certificate", "connect_private_key",
+             "connect_certificate")
+
+
+def _check_secured(conf: zenoh.Config, source) -> None:
+    """A TLS configuration must name a real host and existing certificate files (Zenoh itself would
+    start with a placeholder host and no certificates, silently alone)."""
+    where = f"--config {source}" if source else "the Zenoh configuration"
+    endpoints = json.loads(conf.get_json("connect/endpoints") or "[]") + json.loads(conf.get_json("listen/endpoints") or "[]")
+    placeholder = [e for e in endpoints if isinstance(e, str) and "ROBOT_HOST" in e]
+    if placeholder:
+        raise BusConfigError(f"{where}: endpoint {placeholder[0]!r} still has the ROBOT_HOST placeholder "
+                             "(put the robot's DNS name or IP there, or pass --connect)")
+    for name in TLS_FILES:
+        value = json.loads(conf.get_json(f"transport/link/tls/{name}") or "null")
+        if isinstance(value, str) and not Path(value).is_file():
+            raise BusConfigError(f"{where}: transport/link/tls/{name} {value!r} not found "
+                                 "(make certificates with `flyslam certs --out DIR`)")
 
 
 def open_session(opts: BusOptions) -> zenoh.Session:

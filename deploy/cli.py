@@ -39,6 +39,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "camera": ("services.camera", "run a real stereo camera (or video files) as a live source"),
     "calibrate": ("deploy.commands.calibrate", "stereo calibration from chessboard image pairs"),
     "import": ("deploy.commands.importer", "convert a public dataset (kitti, euroc, middlebury) to a recording"),
+    "certs": ("deploy.commands.certs", "make a CA and per-host TLS certificates for deploy/zenoh/secured.json5"),
     "eval": ("deploy.commands.evaluate", "run evolver and localiser in lockstep on a recording and score the trajectory"),
 }
 
