@@ -261,3 +261,29 @@ def test_a_step_that_raises_is_counted_and_logged_and_the_loop_carries_on(caplog
     with pytest.raises(SystemExit):
         with survive(node, "frame", log):
             raise SystemExit("flyslam: bad flag")
+
+
+def test_the_planner_survives_and_counts_the_messages_that_once_crashed_it(zenoh_port, tmp_path):
+    """A fusion/pose at 1e308, a NaN target, a NaN map->odom and a calibration of width 0 each ended
+    the planner; now each is counted as rejected on its key and commands keep coming."""
+    proc = start_module("services.planner", port=zenoh_port, log_path=tmp_path / "planner.log")
+    try:
+        with Node("tester", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+            heartbeats, commands = [], []
+            node.subscribe("status/planner", m.Heartbeat, heartbeats.append)
+            node.subscribe("planner/cmd_vel", m.VelocityCommand, commands.append)
+            assert wait_until(lambda: heartbeats and commands, 30), "planner did not come up"
+            hostile = {"fusion/pose": CASES[S.FUSION_POSE][1]["position 1e308"],
+                       "planner/target": CASES[S.PLANNER_TARGET][1]["NaN x"],
+                       "slam/map_to_odom": CASES[S.SLAM_MAP_TO_ODOM][1]["NaN translation"],
+                       "stereo/calibration": CASES[S.STEREO_CALIBRATION][1]["zero width"]}
+            for key, msg in hostile.items():
+                node.session.put(node.key(key), m.encode(msg))
+            names = [k.replace("/", "_") + "_rejected" for k in ("fusion/pose", "slam/map_to_odom")]
+            assert wait_until(lambda: all(heartbeats[-1].counters.get(n, 0) >= 1 for n in names), 10), \
+                heartbeats[-1].counters
+            n = len(commands)
+            assert wait_until(lambda: len(commands) > n + 5, 10), "the planner stopped commanding"
+            assert proc.poll() is None
+    finally:
+        assert stop(proc) == 0
