@@ -55,8 +55,14 @@ class PoseBuffer:
                 return None
             if not self.extrapolate or len(stamps) < 2 or stamp_ns == stamps[-1]:
                 return self._poses[-1].copy()
-            T0, T1 = self._poses[-2], self._poses[-1]
-            return T1 @ _scaled_motion(invert(T0) @ T1, (stamp_ns - stamps[-1]) / (stamps[-1] - stamps[-2]))
+            # The velocity over a span at least half as long as the extrapolation: two readings a
+            # millisecond apart would multiply their noise a hundredfold over a frame period.
+            ahead = stamp_ns - stamps[-1]
+            j = bisect.bisect_right(stamps, stamps[-1] - ahead // 2) - 1
+            if j < 0 or stamps[j] == stamps[-1]:
+                return self._poses[-1].copy()
+            T0, T1 = self._poses[j], self._poses[-1]
+            return T1 @ _scaled_motion(invert(T0) @ T1, ahead / (stamps[-1] - stamps[j]))
         i = bisect.bisect_right(stamps, stamp_ns)
         t0, t1 = stamps[i - 1], stamps[i]
         a = (stamp_ns - t0) / (t1 - t0)
