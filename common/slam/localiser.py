@@ -121,11 +121,14 @@ class LocaliserConfig:
     photometric_reference_angle_rad: float = np.deg2rad(5.0)
     # Back-end (common.slam.backend): keyframes as pose-graph nodes; published poses corrected by it.
     pose_graph: bool = True
-    loop_closure: bool = True           # register a new keyframe against an old one near it
+    loop_closure: bool = False          # register a new keyframe against an old one near it (off: see commit)
     loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
     loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
     loop_min_separation: int = 10       # ... and is at least this many keyframes older
     loop_window: tuple = (1.0, 1.0, np.deg2rad(15.0))   # its registration's search half-widths
+    # Choose the local map from every archived keyframe instead of the window (off: worse on the loop
+    # scenario and on KITTI).
+    local_map_from_archive: bool = False
 
 
 @dataclass
@@ -211,6 +214,7 @@ class FlyLocaliser:
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
+        self._pool_list: list[Keyframe] | None = None
 
     # ------------------------------------------------------------------------------ selection
     def select_flies(self, positions_cam: np.ndarray, fitness: np.ndarray):
@@ -230,13 +234,23 @@ class FlyLocaliser:
         return base[band], f[keep][band]
 
     # ------------------------------------------------------------------------------------ map
+    @property
+    def _pool(self):
+        """Keyframes the local map is chosen from: with the back-end and loop closure every archived
+        keyframe (a place seen again is registered against what was mapped there), else the window."""
+        if self.backend is not None and self.config.loop_closure and self.config.local_map_from_archive:
+            if self._pool_list is None or len(self._pool_list) != len(self.backend.archive):
+                self._pool_list = list(self.backend.archive.values())
+            return self._pool_list
+        return self.keyframes
+
     def _map_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All keyframe points in the map frame (float32), the index of the keyframe each belongs to and
         each keyframe's size; rebuilt only when the keyframe window changed."""
-        ids = tuple(kf.id for kf in self.keyframes)
+        ids = tuple(kf.id for kf in self._pool)
         if self._map_cache is None or self._map_cache[0] != ids:
-            sizes = np.array([len(kf.points_map) for kf in self.keyframes], dtype=np.int64)
-            pts = np.concatenate([kf.points_map for kf in self.keyframes]).astype(np.float32)
+            sizes = np.array([len(kf.points_map) for kf in self._pool], dtype=np.int64)
+            pts = np.concatenate([kf.points_map for kf in self._pool]).astype(np.float32)
             self._map_cache = (ids, pts, np.repeat(np.arange(len(sizes)), sizes), sizes)
         return self._map_cache[1:]
 
@@ -257,7 +271,7 @@ class FlyLocaliser:
             with np.errstate(divide="ignore", invalid="ignore"):
                 seen = ((cam[:, 2] > 0.3) & (cam[:, 2] < self.max_depth_m)
                         & (np.abs(cam[:, 0] / cam[:, 2]) < np.tan(self.config.fallback_half_fov_rad)))
-        visible = np.bincount(owner[seen], minlength=len(self.keyframes))
+        visible = np.bincount(owner[seen], minlength=len(self._pool))
         self._visible_cache = (key, visible)
         return visible
 
@@ -282,7 +296,7 @@ class FlyLocaliser:
         chosen, _ = self._local_keyframes(T_map_base)
         if not chosen:
             return np.zeros((0, 3))
-        pts = np.concatenate([self.keyframes[i].points_map.astype(np.float64) for i in chosen])
+        pts = np.concatenate([self._pool[i].points_map.astype(np.float64) for i in chosen])
         if len(pts) > self.config.max_map_points:
             pts = pts[self._rng.choice(len(pts), self.config.max_map_points, replace=False)]
         return pts
@@ -290,13 +304,13 @@ class FlyLocaliser:
     def _distance_to_map(self, T_map_base: np.ndarray) -> float:
         if not self.keyframes:
             return np.inf
-        return float(min(np.linalg.norm(kf.T_map_base[:2, 3] - T_map_base[:2, 3]) for kf in self.keyframes))
+        return float(min(np.linalg.norm(kf.T_map_base[:2, 3] - T_map_base[:2, 3]) for kf in self._pool))
 
     def _needs_keyframe(self, T_map_base: np.ndarray) -> bool:
         if not self.keyframes:
             return True
         x, y, yaw = planar_from_transform(T_map_base)
-        for kf in self.keyframes:
+        for kf in self._pool:
             kx, ky, kyaw = planar_from_transform(kf.T_map_base)
             dyaw = abs((yaw - kyaw + np.pi) % (2 * np.pi) - np.pi)
             if np.hypot(x - kx, y - ky) < self.config.keyframe_distance_m and dyaw < self.config.keyframe_angle_rad:
@@ -535,7 +549,7 @@ class FlyLocaliser:
             return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies}){why}", False, cov_pred)
         # B: the local map in the predicted base frame; A: the flies in the (unknown) true base frame.
         B = transform_points(invert(T_pred), self.local_map(T_pred))
-        links = [self.keyframes[i].id for i in self._local_keyframes(T_pred)[0]]
+        links = [self._pool[i].id for i in self._local_keyframes(T_pred)[0]]
         if source == "odometry":
             sxy, syaw = self._prior_sigmas()
             window = np.clip(3.0 * np.array([sxy, sxy, syaw]), c.window, c.max_window)
