@@ -41,7 +41,7 @@ def _clip():
         return ([read("image_0", i) for i in range(N)], [read("image_1", i) for i in range(N)],
                 rows["P0"].reshape(3, 4), rows["P1"].reshape(3, 4), read_kitti(KITTI / "poses" / "00.txt")[:N])
     rng = np.random.default_rng(0)
-    imgs = cv2.GaussianBlur(rng.integers(0, 256, (2 * N, 120, 320), dtype=np.uint8), (0, 0), 1.0)
+    imgs = [cv2.GaussianBlur(rng.integers(0, 256, (120, 320), dtype=np.uint8), (0, 0), 1.0) for _ in range(2 * N)]
     P0 = np.array([[300.0, 0, 160, 0], [0, 300, 60, 0], [0, 0, 1, 0]])
     P1 = P0.copy()
     P1[0, 3] = -300.0 * 0.5
