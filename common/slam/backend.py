@@ -69,11 +69,11 @@ class KeyframeGraph:
 
     def add(self, kf, registered_to: list[int] = (), fix_cov: np.ndarray | None = None) -> None:
         """A new keyframe (initialised at its registered pose) with its odometry and registration factors."""
-        kf.T_map_base = orthonormalised(kf.T_map_base)
         self.archive[kf.id] = kf
-        self.graph.add_keyframe(kf.id, kf.T_map_base)
+        T0 = orthonormalised(kf.T_map_base)
+        self.graph.add_keyframe(kf.id, T0)
         if self._last_id is None:
-            self.graph.add_prior(kf.id, kf.T_map_base, np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
+            self.graph.add_prior(kf.id, T0, np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
         else:
             prev = self.archive[self._last_id]
             T = orthonormalised(invert(prev.T_map_base) @ kf.T_map_base)
@@ -114,10 +114,11 @@ class KeyframeGraph:
         self.graph.optimise()
         for kf_id, T in self.graph.poses().items():
             kf = self.archive.get(kf_id)
-            if kf is not None and not np.allclose(T, kf.T_map_base, atol=1e-9):
+            if kf is not None and not np.allclose(T, kf.T_map_base, atol=1e-7):   # (round-off moves nothing)
                 kf.T_map_base = T
                 kf.points_map = transform_points(T, kf.points.astype(np.float64)).astype(np.float32)
-        return self.archive[newest_id].T_map_base @ invert(before)
+        C = self.archive[newest_id].T_map_base @ invert(before)
+        return np.eye(4) if np.allclose(C, np.eye(4), atol=1e-7) else C
 
     def drop_if_outvoted(self, handle: int) -> bool:
         """Remove a factor the optimised graph down-weighted (an outlier); True if it was removed."""

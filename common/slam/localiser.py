@@ -505,8 +505,9 @@ class FlyLocaliser:
                 added = True
                 if self.backend is not None:
                     C = self._graph_keyframe(kf, list(links) if registered else [], cov if registered else None)
-                    T_map_base = C @ T_map_base
-                    self._apply_correction(C)
+                    if not np.array_equal(C, np.eye(4)):
+                        T_map_base = C @ T_map_base
+                        self._apply_correction(C)
             if T_odom_base is not None:
                 self.T_map_odom = T_map_base @ invert(T_odom_base)
             if view_flies is not None and (registered or self._reference is None):
