@@ -23,10 +23,12 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 
 from common.geometry import orthonormalised, so3_exp
 
 PATTERN = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.float32)   # (9, 2) px
+PATTERN_F64 = PATTERN.astype(np.float64)
 
 
 class AlignmentError(ValueError):
@@ -74,6 +76,70 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     s = cv2.remap(img, mu.reshape(rows, cols), mv.reshape(rows, cols), cv2.INTER_LINEAR,
                   borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return s.ravel()[:n].reshape(shape)
+
+
+@njit(cache=True)
+def _residuals(P, T, img, fx, fy, cx, cy, z_min, pattern, ref0, valid_ref, r, valid):
+    """Zero-mean neighbourhood residuals r (N, 9) of the flies P moved by T in img (bilinear), and
+    which flies are in view (valid); flies out of view get r = 0."""
+    h, w = img.shape
+    m = pattern.shape[0]
+    vals = np.empty(m)
+    for i in range(P.shape[0]):
+        x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
+        y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
+        z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+        ok = valid_ref[i] and z > z_min
+        if ok:
+            u0 = fx * x / z + cx
+            v0 = fy * y / z + cy
+            mean = 0.0
+            for k in range(m):
+                u = u0 + pattern[k, 0]
+                v = v0 + pattern[k, 1]
+                if not (u >= 0.0 and v >= 0.0 and u < w - 1 and v < h - 1):
+                    ok = False
+                    break
+                iu, iv = int(u), int(v)
+                a, b = u - iu, v - iv
+                val = ((1 - a) * (1 - b) * img[iv, iu] + a * (1 - b) * img[iv, iu + 1]
+                       + (1 - a) * b * img[iv + 1, iu] + a * b * img[iv + 1, iu + 1])
+                vals[k] = val
+                mean += val
+            if ok:
+                mean /= m
+                for k in range(m):
+                    r[i, k] = vals[k] - mean - ref0[i, k]
+        valid[i] = ok
+        if not ok:
+            for k in range(m):
+                r[i, k] = 0.0
+
+
+@njit(cache=True)
+def _normal_equations(J, r, valid, weights, huber_k):
+    """Gauss-Newton H = Σ w h JᵀJ and g = Σ w h Jᵀr with Huber weights h, and the inlier share."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    inliers, count = 0, 0
+    for i in range(J.shape[0]):
+        if not valid[i]:
+            continue
+        for p in range(J.shape[1]):
+            a = abs(r[i, p])
+            hub = 1.0 if a <= huber_k else huber_k / a
+            wt = hub * weights[i]
+            inliers += a <= huber_k
+            count += 1
+            for c in range(6):
+                jc = wt * J[i, p, c]
+                g[c] += jc * r[i, p]
+                for d in range(c, 6):
+                    H[c, d] += jc * J[i, p, d]
+    for c in range(6):
+        for d in range(c):
+            H[c, d] = H[d, c]
+    return H, g, inliers / max(count, 1)
 
 
 def _project(P: np.ndarray, fx, fy, cx, cy):
@@ -141,35 +207,24 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
         J = gx[:, :, None] * du[:, None, :] + gy[:, :, None] * dv[:, None, :]      # (N, 9, 6)
         J = np.where(valid_ref[:, None, None], J - J.mean(1, keepdims=True), 0.0)   # zero-mean patches
         ref0 = np.where(valid_ref[:, None], ref - ref.mean(1, keepdims=True), 0.0)
+        Jc = np.ascontiguousarray(J)
+        r = np.empty((len(P), len(PATTERN)))
+        valid = np.empty(len(P), np.bool_)
         for _ in range(iterations):
             total_iters += 1
-            Pn = P @ T[:3, :3].T + T[:3, 3]
-            front = Pn[:, 2] > depth_range[0]
-            un, vn = _project(np.where(front[:, None], Pn, 1.0), fx, fy, cx, cy)
-            cur = _sample(Inew, un[:, None] + PATTERN[None, :, 0], vn[:, None] + PATTERN[None, :, 1])
-            valid = valid_ref & front & np.isfinite(cur).all(1)
+            _residuals(P, T, Inew, fx, fy, cx, cy, depth_range[0], PATTERN_F64, ref0, valid_ref, r, valid)
             used = int(valid.sum())
             if used < min_flies:
                 return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, used, total_iters, False,
                                  f"too few flies in view: {used} (need {min_flies})")
-            r = np.where(valid[:, None], (cur - cur.mean(1, keepdims=True)) - ref0, 0.0)   # (N, 9)
-            rv = r[valid]
-            sigma = 1.4826 * float(np.median(np.abs(rv))) + 1e-6
-            k = huber_px * sigma
-            a = np.abs(r)
-            hub = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-            W = np.where(valid[:, None], hub * w[:, None], 0.0)                       # (N, 9)
-            Jf = J.reshape(-1, 6)
-            Jw = Jf * W.reshape(-1, 1)
-            H = Jw.T @ Jf
-            g = Jw.T @ r.ravel()
+            sigma = 1.4826 * float(np.median(np.abs(r[valid]))) + 1e-6
+            H, g, inlier_frac = _normal_equations(Jc, r, valid, w, huber_px * sigma)
             try:
                 dxi = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
             except np.linalg.LinAlgError:
                 return Alignment(T, np.full((6, 6), np.nan), sigma, 0.0, used, total_iters, False,
                                  "singular alignment: the flies do not constrain all six degrees of freedom")
             T = orthonormalised(T @ np.linalg.inv(se3_exp(dxi)))
-            inlier_frac = float((a[valid] <= k).mean())
             if np.max(np.abs(dxi[:3])) < 1e-4 and np.max(np.abs(dxi[3:])) < 1e-5:
                 break
     wsum = float(w.sum())
