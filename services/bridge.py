@@ -17,14 +17,17 @@ viewer runs as a ``rerun --serve-web --bind ...`` child process, which honours t
 """
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import rerun as rr
 
 from common import streams as S
@@ -38,7 +41,7 @@ CALLBACK_STREAMS = [S.SLAM_POSE, S.FUSION_POSE, S.FUSION_ODOM, S.TRUTH_POSE, S.P
                     S.STATUS]
 # Streams where only the newest message is worth logging.
 LATEST_STREAMS = [S.STEREO_FRAME, S.FLIES_POPULATION, S.PLANNER_FIELD, S.FUSION_SONAR_POINTS]
-INBOX_SIZE = 20_000
+INBOX_MAX_BYTES = 32 * 1024 * 1024
 
 
 def build_parser():
@@ -117,27 +120,46 @@ def start_web_viewer(args, grpc_uri: str) -> subprocess.Popen | None:
 
 
 class Inbox:
-    """Bounded queue of (stream, message) filled by Zenoh callbacks; overflow is counted, not blocking."""
+    """Queue of (stream, message) filled by Zenoh callbacks, bounded in bytes (estimated from the
+    messages' arrays): past ``max_bytes`` the oldest are dropped and counted, the callbacks never block."""
 
-    def __init__(self, node, size: int = INBOX_SIZE):
-        self._q: queue.Queue = queue.Queue(maxsize=size)
+    def __init__(self, node, max_bytes: int = INBOX_MAX_BYTES):
+        self._q: collections.deque = collections.deque()
+        self._lock = threading.Lock()
+        self._bytes = 0
+        self.max_bytes = max_bytes
         self._node = node
 
+    @staticmethod
+    def _cost(msg) -> int:
+        """Rough resident size of a message: its numpy arrays plus a fixed overhead."""
+        arrays = getattr(msg, "__dict__", {}).values() if hasattr(msg, "__dict__") else ()
+        return 512 + sum(a.nbytes for a in arrays if isinstance(a, np.ndarray))
+
     def put(self, stream: str, msg) -> None:
-        try:
-            self._q.put_nowait((stream, msg))
-        except queue.Full:
-            self._node.counters.add("inbox_dropped")
+        cost = self._cost(msg)
+        with self._lock:
+            self._q.append((stream, msg, cost))
+            self._bytes += cost
+            while self._bytes > self.max_bytes and len(self._q) > 1:
+                _, _, dropped = self._q.popleft()
+                self._bytes -= dropped
+                self._node.counters.add("inbox_dropped")
 
     def size(self) -> int:
-        return self._q.qsize()
+        return len(self._q)
+
+    def bytes(self) -> int:
+        return self._bytes
 
     def drain(self):
         while True:
-            try:
-                yield self._q.get_nowait()
-            except queue.Empty:
-                return
+            with self._lock:
+                if not self._q:
+                    return
+                stream, msg, cost = self._q.popleft()
+                self._bytes -= cost
+            yield stream, msg
 
 
 def subscribe_all(node, inbox: Inbox, map_period_s: float):
