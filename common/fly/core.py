@@ -32,6 +32,7 @@ from common.fly.evolver import FlyEvolver
 from common.fly.scheduling import SettlePolicy, population_quality, settle
 from common.geometry import invert
 from common.images import frame_images
+from common.core_inputs import LatchedInputs
 from common.pose_buffer import PoseBuffer
 
 log = logging.getLogger("flyslam.evolver")
@@ -71,7 +72,7 @@ def _same_geometry(a: StereoCalibration | None, b: StereoCalibration) -> bool:
     return a is not None and (a.width, a.height, a.fx, a.baseline) == (b.width, b.height, b.fx, b.baseline)
 
 
-class EvolverCore:
+class EvolverCore(LatchedInputs):
     """One fly population kept on the newest frame (see the module docstring).
 
     ``settle`` is a :class:`SettlePolicy` (live: evolve until good enough or out of time) or an int (a
@@ -86,12 +87,11 @@ class EvolverCore:
         self.sonar_weight = sonar_weight
         # Extrapolated at constant velocity: visual odometry (the localiser's estimates relayed by fusion)
         # only knows frames already localised, one or two frame periods before the new one.
-        self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=400, max_extrapolation_ns=500_000_000,
-                                                                          extrapolate=True)
+        super().__init__(odometry if odometry is not None else PoseBuffer(maxlen=400, max_extrapolation_ns=500_000_000,
+                                                                          extrapolate=True))
         self.clock = clock
         self.evolver: FlyEvolver | None = None
         self.calibration: StereoCalibration | None = None
-        self._calibration_msg: m.StereoCalibrationMsg | None = None
         self._applied_msg: m.StereoCalibrationMsg | None = None
         self._sonar: m.SonarScan | None = None
         self._last_T_odom_cam: np.ndarray | None = None
@@ -99,15 +99,6 @@ class EvolverCore:
         self._left_grey: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------- inputs
-    def on_calibration(self, msg: m.StereoCalibrationMsg) -> None:
-        self._calibration_msg = msg
-
-    @property
-    def has_calibration(self) -> bool:
-        return self._calibration_msg is not None
-
-    def on_odometry(self, stamp_ns: int, T_odom_base: np.ndarray) -> None:
-        self.odometry.add(stamp_ns, T_odom_base)
 
     def on_sonar(self, msg: m.SonarScan) -> None:
         self._sonar = msg

@@ -23,6 +23,7 @@ import numpy as np
 
 from common import messages as m
 from common.geometry import invert, pose_from_transform
+from common.core_inputs import LatchedInputs
 from common.pose_buffer import PoseBuffer
 from common.slam.localiser import Estimate, FlyLocaliser, LocaliserConfig, LocaliserError
 from common.slam.mapfile import FlyMapData, save_map
@@ -49,29 +50,19 @@ class LocaliserOutput:
     reason: str | None = None       # 'republished', 'no calibration', 'bad population: ...'
 
 
-class LocaliserCore:
+class LocaliserCore(LatchedInputs):
     def __init__(self, config: LocaliserConfig | None = None, seed: int = 0, odometry: PoseBuffer | None = None,
                  initial_map: FlyMapData | None = None):
         """``initial_map``: a saved map (common.slam.mapfile.load_map) the localiser starts from."""
         self.config = config or LocaliserConfig()
         self.initial_map = initial_map
         self.seed = seed
-        self.odometry = odometry if odometry is not None else PoseBuffer(maxlen=1000)
+        super().__init__(odometry if odometry is not None else PoseBuffer(maxlen=1000))
         self.localiser: FlyLocaliser | None = None
-        self._calibration_msg: m.StereoCalibrationMsg | None = None
         self._last_source_seq: int | None = None
         self.stamps: list[int] = []
         self.poses: list[np.ndarray] = []
 
-    def on_calibration(self, msg: m.StereoCalibrationMsg) -> None:
-        self._calibration_msg = msg
-
-    @property
-    def has_calibration(self) -> bool:
-        return self._calibration_msg is not None
-
-    def on_odometry(self, stamp_ns: int, T_odom_base: np.ndarray) -> None:
-        self.odometry.add(stamp_ns, T_odom_base)
 
     @property
     def keyframes(self):

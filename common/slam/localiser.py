@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.fly.selection import fittest
 from common.geometry import invert, orthonormalised, planar_from_transform, planar_pose, so3_log, transform_points
 from common.registration import PopulationError, register_planar
 from common.registration.register import StereoModel
@@ -228,7 +229,7 @@ class FlyLocaliser:
         P, f = P[ok], f[ok]
         if len(P) == 0:
             return np.zeros((0, 3)), np.zeros(0)
-        keep = np.argsort(-f)[: max(1, int(len(f) * c.keep_fraction))]
+        keep = fittest(f, c.keep_fraction)
         base = transform_points(self.T_base_camera, P[keep])
         band = (base[:, 2] > c.min_height_m) & (base[:, 2] < c.max_height_m)
         return base[band], f[keep][band]
