@@ -83,6 +83,14 @@ KEY_FIGURES: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("frames 50-99 ATE: flyslam", "clips.kitti-00-frames-0-99@50:100.flyslam_ate_m", "m"),
         ("reference", "clips.kitti-00-frames-0-99@50:100.reference_ate_m", "m"),
     ]),
+    "pipeline": ("whole pipeline at 30 frames/s, 640×480, every service incl. bridge and recorder", [
+        ("pose latency p50", "pose_latency_p50_ms", "ms"),
+        ("p99", "pose_latency_p99_ms", "ms"),
+        ("frames skipped", "frames_skipped_fraction", "share"),
+        ("CPU, all services", "cpu_pct_of_one_core.total", "% of a core"),
+        ("per frame", "cpu_ms_per_frame.total", "ms"),
+        ("ATE", "ate_rmse_m", "m"),
+    ]),
     "registration": ("pseudo-distance δ and registration, 5,000 flies", [
         ("δ exact (numba)", "exact_numba_delta_ms", "ms"),
         ("δ fast", "fast_delta_ms", "ms"),
