@@ -11,33 +11,10 @@ The kernel is split, as in particle-particle/particle-mesh (P³M) solvers, into
 * a compact near part K − K_far (zero beyond r_c = near_cells·h), summed exactly over the neighbours
   of each query point found through a 3-D cell list of B (cells.py).
 
-Measured (bench/registration.py and the sweeps behind this choice, deep street scene, n = p = 5,000,
-ε = 0.1 m, 2 shared cores under load): the exact δ takes ≈1.1 s in numpy float64 and ≈0.1 s with the
-parallel numba sum.  The near radius sets the cost (the near sum is ≈80 % of the evaluation) and,
-with the deposit, the accuracy: the smoothing of the deposit aliases the kernel's core into the grid.
-Until 2026-11 the defaults were a cloud-in-cell deposit with near_cells=2 (r_c = 1.2 m): δ within
-0.085 % in ≈1.1 ms, the gradient within ≈1.5 % (median).  With CIC, near_cells=1 was ≈1.5× faster but
-δ only within 0.25 %.  A TSC deposit (quadratic B-spline, window sinc³, deconvolved like CIC's) cuts
-that aliasing (the per-point field error at a typical fly drops 1.4–2.7×), so the default is TSC,
-near_cells=1, x-y columns of r_c/0.35, max_cells=360,000 (h ≈ 0.6 m): the build (deposit, FFT
-convolution, cell list) ≈35 ms and δ at A's 5,000 points ≈0.65 ms (≈0.13 ms tricubic far field,
-≈0.5 ms near sum).  What that costs in accuracy, over three population pairs: δ within 0.04–0.2 %
-(CIC, near_cells=2: 0.02–0.085 %), the field within 0.05–0.18 % at the median fly but up to 2 % at
-the worst one (0.6 %), the gradient within ≈3.5 % (1.5 %) at the median fly.  TSC with
-near_cells=1.5 matches or beats the old accuracy on every count at ≈1.0 ms; near_cells=2 gives
-gradients within ≈1.2 % at ≈1.8× the cost.  A finer grid buys a smaller r_c at the cost of the
-build: max_cells=120,000 (h ≈ 0.9 m) builds in ≈10 ms; the registration, which rebuilds the field for
-every call, uses it.  At near_cells=1 the near sum is bound by its per-query part (column lookups
-and the scalar tails of the vectorised runs) as much as by r_c.
-
-Where the time went, and what did not help: the near sum is over the flies packed near the camera
-(≈70 neighbours within 0.9 m on average, ≈250 within 1.8 m).  Its loop is float32, vectorised by
-LLVM (this needs the numpy error model: numba's ZeroDivisionError check on `1/(ε + r)` blocked
-vectorisation, a 3× loss), and loops over the queries itself (a per-point call with a dozen array
-arguments cost more than the sum at small r_c).  Sorting the queries by cell gained ≈6 %, less than
-the sort costs; fixed 8- or 16-wide masked blocks instead of LLVM's vector loop, gathering each
-query's candidates into one buffer, narrower or anisotropic x-y columns, and a C²-matched K_far
-(smoother on the grid, but no more accurate at small r_c) were all slower or no better.
+Defaults: a TSC deposit (quadratic B-spline, window sinc³, deconvolved), near_cells=1,
+max_cells=360,000 for a prebuilt field (h ≈ 0.6 m); the registration, which rebuilds the field for
+every call, uses max_cells=120,000. bench/registration.py measures the cost and the error against the
+exact sum; docs/design/registration.md says why this split.
 
 Grid extent: the grid covers B and the `bounds` the caller will evaluate at (for registration, every
 place A's points can reach under the search window), padded by r_c.  A point outside the grid is
