@@ -39,3 +39,23 @@ def test_summary_reports_accuracy_target_and_files(tmp_path):
 def test_summary_says_what_is_missing(tmp_path):
     text = format_pipeline_summary(pipeline_summary(tmp_path))
     assert "no estimated and ground-truth trajectories" in text and "unknown" in text
+
+
+def _run_folder(tmp_path, end_x: float, last_reason: str):
+    stamps = np.arange(20, dtype=np.int64) * 100_000_000
+    truth = np.array([planar_pose(end_x * k / 19, 0.0, 0.0) for k in range(20)])
+    write_tum(tmp_path / "truth.tum", stamps, truth)
+    write_tum(tmp_path / "estimated.tum", stamps, truth)
+    with RecordingWriter(tmp_path / "recording.mcap") as rec:
+        rec.write("rig/planner/target", m.encode(m.Target(x=2.0, y=0.0, radius_m=0.4, header=m.header(1, 1, "map"))), 1)
+        rec.write("rig/planner/cmd_vel", m.encode(m.VelocityCommand(reason=last_reason)), 2)
+    return pipeline_summary(tmp_path)
+
+
+def test_a_robot_inside_the_target_radius_has_reached_it_whatever_the_last_command(tmp_path):
+    """At the radius' edge the planner's last command may flicker back to 'following field' as the run
+    ends; the robot's true position decides. Outside the radius the last command still says why not."""
+    (tmp_path / "in").mkdir()
+    (tmp_path / "out").mkdir()
+    assert _run_folder(tmp_path / "in", 1.75, "following field")["target"] == "reached"
+    assert _run_folder(tmp_path / "out", 1.0, "no path")["target"] == "not reached: last command 'no path'"
