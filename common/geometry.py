@@ -43,6 +43,15 @@ def orthonormalised(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def scaled_motion(rel: np.ndarray, a: float) -> np.ndarray:
+    """The body-frame motion ``rel`` carried on for ``a`` times as long (rotation along its geodesic,
+    translation scaled): the constant-velocity step."""
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(a * so3_log(rel[:3, :3]))
+    T[:3, 3] = a * rel[:3, 3]
+    return T
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4×4 transform to an (N, 3) array of points; keeps the input dtype."""
     pts = np.asarray(points)

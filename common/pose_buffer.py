@@ -11,7 +11,7 @@ from collections import deque
 
 import numpy as np
 
-from common.geometry import invert, so3_exp, so3_log
+from common.geometry import invert, scaled_motion, so3_exp, so3_log
 
 
 class PoseBuffer:
@@ -62,7 +62,7 @@ class PoseBuffer:
             if j < 0 or stamps[j] == stamps[-1]:
                 return self._poses[-1].copy()
             T0, T1 = self._poses[j], self._poses[-1]
-            return T1 @ _scaled_motion(invert(T0) @ T1, ahead / (stamps[-1] - stamps[j]))
+            return T1 @ scaled_motion(invert(T0) @ T1, ahead / (stamps[-1] - stamps[j]))
         i = bisect.bisect_right(stamps, stamp_ns)
         t0, t1 = stamps[i - 1], stamps[i]
         a = (stamp_ns - t0) / (t1 - t0)
@@ -72,11 +72,3 @@ class PoseBuffer:
         T[:3, :3] = T0[:3, :3] @ so3_exp(a * so3_log(T0[:3, :3].T @ T1[:3, :3]))
         return T
 
-
-def _scaled_motion(rel: np.ndarray, a: float) -> np.ndarray:
-    """The body-frame motion ``rel`` carried on for ``a`` times as long (rotation along its geodesic,
-    translation scaled): the constant-velocity step."""
-    T = np.eye(4)
-    T[:3, :3] = so3_exp(a * so3_log(rel[:3, :3]))
-    T[:3, 3] = a * rel[:3, 3]
-    return T

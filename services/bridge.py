@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import queue
 import socket
 import subprocess
 import sys
@@ -133,8 +132,8 @@ class Inbox:
     @staticmethod
     def _cost(msg) -> int:
         """Rough resident size of a message: its numpy arrays plus a fixed overhead."""
-        arrays = getattr(msg, "__dict__", {}).values() if hasattr(msg, "__dict__") else ()
-        return 512 + sum(a.nbytes for a in arrays if isinstance(a, np.ndarray))
+        fields = vars(msg).values() if hasattr(msg, "__dict__") else ()
+        return 512 + sum(a.nbytes for a in fields if isinstance(a, np.ndarray))
 
     def put(self, stream: str, msg) -> None:
         cost = self._cost(msg)

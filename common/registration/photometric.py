@@ -270,7 +270,9 @@ def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list
         return np.linspace(-half, half, n)
     xs = axis(0.1 * z_med, step_px * z_med / fx)
     zs = axis(0.25 * z_med, step_px * z_med / (0.5 * fx))
-    yaws = axis(np.deg2rad(5.0), step_px / fx)[:: 2] if max_candidates_per_axis > 5 else axis(np.deg2rad(5.0), step_px / fx)
+    yaws = axis(np.deg2rad(5.0), step_px / fx)
+    if max_candidates_per_axis > 5:
+        yaws = yaws[::2]                 # every other yaw: a lateral step mostly looks like one
     X, Z, Y = np.meshgrid(xs, zs, yaws, indexing="ij")
     X, Z, Y = X.ravel(), Z.ravel(), Y.ravel()
     c, sn = np.cos(Y), np.sin(Y)

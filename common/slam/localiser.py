@@ -1,42 +1,41 @@
 """Fly-based SLAM: localise each new fly population against a map of keyframe populations.
 
-The paper ("Flies open a door to SLAM") registers two consecutive populations; errors then accumulate
-like odometry. Here every population is registered against a *local map*: the keyframe populations
-that see most of what a camera at the predicted pose would see (view overlap, not distance: a robot
-turning on the spot has keyframes at the same place looking every way), merged in the map frame.
-A keyframe is added where no existing one is both near and looking the same way, when the pose was
-registered, or the map is far away, or the map covers little of the view; keyframes are voxel-thinned,
-and the map keeps a bounded window of them, so memory stays flat on long runs.
+Per update (no I/O; the localiser service and ``flyslam eval`` both drive this class, through
+common.slam.core):
 
-Per update (no I/O; the localiser service and ``flyslam eval`` both drive this class):
+1. keep the population's fittest flies (``keep_fraction``) nearer than ``max_depth_m``, in base_link;
+2. predict the pose: ``T_map_odom · T_odom_base`` from wheel odometry, or a 6-DoF constant-velocity
+   model of the localiser's own estimates (``odometry = "visual"``, or no odometry given);
+3. while wheel odometry says the robot turns faster than ``max_turn_rate_radps``, odometry carries
+   the pose;
+4. with the frame's left image: track photometrically — align the reference view's flies into the
+   image on their neighbourhoods (common.slam.tracking), from the prediction, or after a coarse lattice
+   search when no motion is known yet;
+5. else (no image, no reference, or tracking refused): register the flies against the *local map* —
+   the keyframes that see most of the predicted view, merged in the map frame — with the paper's δ in
+   the plane (x, y, θ), within a window of 3 σ of the prediction, gated against it; an accepted
+   registration is refined photometrically when it can be;
+6. add a keyframe where none is both near and looking the same way (voxel-thinned, a bounded window;
+   with ``pose_graph`` every keyframe is also a node of common.slam.backend's graph, whose corrections
+   move the map and the estimate), and renew the tracking reference once the camera has left it.
 
-1. keep the population's fittest flies (``keep_fraction``) nearer than ``max_depth_m``, expressed in
-   base_link;
-2. predict the pose: ``T_map_base = T_map_odom · T_odom_base`` from odometry, or a constant-velocity
-   model when there is none (image-only datasets);
-3. while odometry says the robot turns faster than ``max_turn_rate_radps``, stop there: odometry
-   carries the pose (without odometry there is no measured rate and no such limit);
-4. register the flies (A) against the local map expressed in the predicted base frame (B), in the
-   plane (x, y, θ), within a window around the prediction (3 σ of the odometry prior, bounded by
-   ``window`` and ``max_window``);
-5. accept the result when the registration is well-posed and the correction plausible; then the
-   map→odom transform absorbs the correction (REP-105). A rejected registration leaves map→odom as it
-   was — odometry carries on — and the estimate says why.
+A refused fix leaves map→odom as it was (odometry carries on) and the estimate's status says why.
+Design: docs/design/localiser.md.
 """
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from common.fly.selection import fittest
-from common.geometry import invert, orthonormalised, planar_from_transform, planar_pose, so3_log, transform_points
+from common.geometry import (invert, orthonormalised, planar_from_transform, planar_pose, scaled_motion, so3_log,
+                             transform_points)
 from common.registration import PopulationError, register_planar
 from common.registration.register import StereoModel
 from common.registration.photometric import pyramid
 from common.registration.weights import visible_mask
-from common.pose_buffer import _scaled_motion
 from common.slam.backend import KeyframeGraph, LoopClosure
 from common.slam.posegraph import planar_covariance
 from common.slam.tracking import ReferenceView, photometric_fix, reference_view
@@ -49,87 +48,46 @@ class LocaliserError(ValueError):
 @dataclass
 class LocaliserConfig:
     keep_fraction: float = 0.7          # fittest fraction of the population used
-    # Flies farther than this (camera z) are too uncertain for δ; None: where the stereo depth error of
-    # a 0.5 px disparity error reaches 15 % of the depth, 0.3·f·B (8.2 m on the simulated rig, 116 m on KITTI's).
-    max_depth_m: float | None = None
-    min_height_m: float = 0.05          # drop flies on the floor: a plane under a planar search is flat
+    max_depth_m: float | None = None    # farther flies do not enter δ; None: 0.3·f·B (0.5 px = 15 % of depth)
+    min_height_m: float = 0.05          # δ drops flies on the floor (a plane under a planar search is flat)
     max_height_m: float = 3.0
     voxel_m: float = 0.04               # keyframe points are thinned to one per voxel
-    # Keyframes 1.5 m apart and a local map of the 3 nearest: fewer links in the chain of keyframes
-    # through which heading error accumulates. Measured with `flyslam eval` on the 20 m corridor run
-    # (23 m path, 1-2 % wheel and 3 % track errors): 0.6 m / 4 keyframes gave ATE 0.29 m; 1.5 m / 3 gave
-    # 0.18 m; with the faster-growing yaw prior below, 0.095 m (odometry alone: 0.52 m).
-    keyframe_distance_m: float = 1.5
-    keyframe_angle_rad: float = np.deg2rad(15.0)
-    max_keyframes: int = 40             # window of keyframes kept (oldest dropped)
+    keyframe_distance_m: float = 1.5    # a keyframe where none is this near ...
+    keyframe_angle_rad: float = np.deg2rad(15.0)   # ... and looking within this of the same way
+    max_keyframes: int = 40             # window of keyframes the local map is chosen from (oldest dropped)
     local_keyframes: int = 3            # keyframes merged into the local map (those seeing most of the view)
-    window: tuple = (0.25, 0.25, np.deg2rad(8.0))   # search half-widths around the prediction (at least)
-    # ... widened to 3 σ of the odometry prior: after a long turn without a fix the heading may be off by
-    # more than the base window, and a window that cannot contain the answer only ever reports a
-    # boundary minimum, so the localiser never recovers (measured: 14° of drift while turning on the spot).
-    max_window: tuple = (0.6, 0.6, np.deg2rad(25.0))
-    max_map_points: int = 6000
-    min_flies: int = 150
-    min_generations: int = 100          # the map starts only from a converged population (see update)
-    eps: float = 0.05
-    # Odometry prior relative to the map, growing with the distance driven since the last registration:
-    # sigma = base + rate × distance (x, y in metres; yaw in radians).
-    prior_sigma_xy: tuple = (0.01, 0.05)
-    prior_sigma_yaw: tuple = (0.01, 0.08)   # miscalibrated wheels curve the path by ~2°/m
-    # Turning on the spot moves no distance but a 3 % track-width error costs 3 % of every turn: the yaw
-    # prior also grows by this much per radian turned since the last fix (a closed-loop run that turned
-    # around at its target rejected every registration afterwards and its map frame rotated).
-    prior_sigma_yaw_per_rad: float = 0.05
-    registration_sigma: tuple = (0.3, 0.03, np.deg2rad(0.6))   # along, across the view (m), heading (rad)
-    gate_chi2: float = 16.0             # reject a registration this far (Mahalanobis²) from the prediction
-    use_stereo_model: bool = True       # depth-uncertainty and footprint weights (see registration)
-    # A view the map covers this poorly (best keyframe: fraction of its points in view) gets a keyframe
-    # even without a registration, so a robot turning where nothing registers still builds a map to
-    # register against on the next frames instead of running on odometry alone.
-    min_view_coverage: float = 0.5
-    # A population evolved while the view swept across the image is mostly young immigrants (measured on
-    # a closed-loop run against the simulator's depth: 97 % of the fittest flies within 5 % of the true
-    # depth below 20°/s, 84 % at 20-45°/s, 68 % above), and registering it bent the map: above this turn
-    # rate the localiser lets odometry carry the pose (3 % of the turn) and neither registers nor adds
-    # keyframes.
-    max_turn_rate_radps: float = np.deg2rad(20.0)
-    # Tracking: within this long of an accepted registration the prediction is already within a few
-    # centimetres and a fraction of a degree of the answer, so the registration searches only around it
-    # (one seed at the prediction, no lattice of candidates; see register_planar's `lattice`).  The
-    # global lattice search is what made a registration cost ~20 ms; the χ² gate against the odometry
-    # prior still refuses a wrong local minimum.  0 always searches globally.
-    tracking_gap_s: float = 0.25
-    # ... and not while turning faster than this: on a replayed spin at the start of a closed-loop run the
-    # local search let the heading slip 10° further than the lattice search did (a turning population is
-    # poorer and its minimum shallower).
-    tracking_max_turn_rate_radps: float = np.deg2rad(5.0)
-    # While tracking, parameters whose minimum sat on the window's edge on the previous frame (typically the
-    # position along a corridor, which the view does not pin) are pinned from the start instead of found on
-    # the edge again and re-registered: the pipeline bench's latency tail was runs of such double
-    # registrations (~45 ms each).  Every this many frames the full window is tried again.
-    tracking_recheck_pinned: int = 10
+    window: tuple = (0.25, 0.25, np.deg2rad(8.0))   # δ search half-widths around the prediction, at least
+    max_window: tuple = (0.6, 0.6, np.deg2rad(25.0))   # ... widened to 3 σ of the prior, at most
+    max_map_points: int = 6000          # local map subsampled to this many points
+    min_flies: int = 150                # fewer usable flies: odometry carries the pose
+    min_generations: int = 100          # the map starts only from a population evolved this long
+    eps: float = 0.05                   # δ's ε (m)
+    prior_sigma_xy: tuple = (0.01, 0.05)    # odometry prior σ = base + rate × metres since the last fix
+    prior_sigma_yaw: tuple = (0.01, 0.08)   # ... for the heading (rad, rad/m)
+    prior_sigma_yaw_per_rad: float = 0.05   # ... plus this per radian turned since the last fix
+    registration_sigma: tuple = (0.3, 0.03, np.deg2rad(0.6))   # δ's noise: along, across the view (m), heading
+    gate_chi2: float = 16.0             # a δ registration this far (Mahalanobis²) from the prediction is refused
+    use_stereo_model: bool = True       # δ with depth-uncertainty and footprint weights (StereoModel)
+    min_view_coverage: float = 0.5      # a view the map covers less than this gets a keyframe even unregistered
+    max_turn_rate_radps: float = np.deg2rad(20.0)   # turning faster (wheels): neither register nor add keyframes
+    tracking_gap_s: float = 0.25        # within this of a fix δ searches from one seed at the prediction
+    tracking_max_turn_rate_radps: float = np.deg2rad(5.0)   # ... and not while turning faster than this
+    tracking_recheck_pinned: int = 10   # axes pinned on the window's edge are tried free again this often
     fallback_half_fov_rad: float = np.deg2rad(35.0)   # view cone when there is no calibration
-    # 'wheels': T_odom_base predicts each pose; 'visual': no wheels, a constant-velocity model of the
-    # localiser's own estimates predicts it (T_odom_base is then ignored, map and odom coincide).
-    odometry: str = "wheels"
-    photometric: bool = True            # refine on the flies' image neighbourhoods when images come along
-    photometric_flies: int = 2000       # fittest flies a keyframe keeps for photometric tracking
+    odometry: str = "wheels"            # 'wheels': T_odom_base predicts; 'visual': constant velocity of own estimates
+    photometric: bool = True            # track on the flies' image neighbourhoods when images come along
+    photometric_flies: int = 2000       # fittest flies the tracking reference keeps
     photometric_levels: int = 4         # image pyramid levels (the start may be ~2^levels px off)
     photometric_min_inliers: float = 0.5   # share of neighbourhoods within the robust threshold to accept
-    # The tracking reference view is renewed once the camera has moved this fraction of the flies'
-    # median depth from it, or turned photometric_reference_angle_rad: the views stay alike.
-    photometric_reference_spacing: float = 0.1
-    photometric_reference_angle_rad: float = np.deg2rad(5.0)
-    # Back-end (common.slam.backend): keyframes as pose-graph nodes; published poses corrected by it.
-    pose_graph: bool = True
-    loop_closure: bool = False          # register a new keyframe against an old one near it (off: see commit)
+    photometric_reference_spacing: float = 0.1   # renew the reference after moving this × its median depth ...
+    photometric_reference_angle_rad: float = np.deg2rad(5.0)   # ... or turning this much
+    pose_graph: bool = True             # keyframes as nodes of common.slam.backend's pose graph
+    loop_closure: bool = False          # register a new keyframe against an old one near it
     loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
     loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
     loop_min_separation: int = 10       # ... and is at least this many keyframes older
     loop_window: tuple = (1.0, 1.0, np.deg2rad(15.0))   # its registration's search half-widths
-    # Choose the local map from every archived keyframe instead of the window (off: worse on the loop
-    # scenario and on KITTI).
-    local_map_from_archive: bool = False
+    local_map_from_archive: bool = False   # choose the local map from every archived keyframe, not the window
 
 
 @dataclass
@@ -140,7 +98,6 @@ class Keyframe:
     points: np.ndarray        # (K, 3) float32 in this keyframe's base_link
     fitness: np.ndarray       # (K,) float32
     points_map: np.ndarray = None   # (K, 3) float32, the same points in the map frame (cached)
-    view: ReferenceView | None = None   # fittest flies and the image, for photometric tracking
 
     def __post_init__(self):
         if self.points_map is None:
@@ -318,15 +275,9 @@ class FlyLocaliser:
                 return False
         return True
 
-    def _add_keyframe(self, stamp_ns: int, T_map_base: np.ndarray, points: np.ndarray, fitness: np.ndarray,
-                      view_flies=None) -> Keyframe:
+    def _add_keyframe(self, stamp_ns: int, T_map_base: np.ndarray, points: np.ndarray, fitness: np.ndarray) -> Keyframe:
         pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
-        view = None
-        if view_flies is not None:
-            c = self.config
-            view = reference_view(T_map_base @ self.T_base_camera, *view_flies, c.photometric_flies, 0.3,
-                                  c.photometric_levels)
-        kf = Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32), fit.astype(np.float32), view=view)
+        kf = Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32), fit.astype(np.float32))
         self.keyframes.append(kf)
         self._next_id += 1
         return kf
@@ -455,7 +406,7 @@ class FlyLocaliser:
         if tr.last_motion is None:
             return tr.last_T_map_base.copy(), "none"
         dt = (stamp_ns - tr.last_stamp) * 1e-9
-        return tr.last_T_map_base @ _scaled_motion(tr.last_motion, dt / tr.last_dt), "constant velocity"
+        return tr.last_T_map_base @ scaled_motion(tr.last_motion, dt / tr.last_dt), "constant velocity"
 
     def _track_update(self, stamp_ns: int, T_map_base: np.ndarray) -> None:
         tr = self._track
@@ -471,8 +422,8 @@ class FlyLocaliser:
         """Localise one population (left optical frame) seen at ``stamp_ns``; see the module doc.
 
         ``generation``: the evolver's generation count; the map starts only from a population that has
-        evolved ``min_generations``. ``image``: the left image the flies were evaluated on; with it the
-        pose is refined on the flies' neighbourhoods (photometric tracking against a keyframe)."""
+        evolved ``min_generations``. ``image``: the grey left image the flies were evaluated on; with it
+        the pose is tracked on the flies' neighbourhoods (against the tracking reference view)."""
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
             if T_odom_base.shape != (4, 4):
@@ -492,7 +443,7 @@ class FlyLocaliser:
                 raise LocaliserError(f"image is {image.shape[1]}x{image.shape[0]}, the calibration "
                                      f"{self.calibration.width}x{self.calibration.height}")
             new_pyramid = pyramid(image, c.photometric_levels)
-            view_flies = (positions_cam, fitness, image)
+            view_flies = (positions_cam, fitness, image, new_pyramid)
 
         def finish(T_map_base, status, registered, cov, delta=float("nan"), may_add=True, links=()):
             added = False
@@ -604,11 +555,13 @@ class FlyLocaliser:
             if (np.linalg.norm(rel[:3, 3]) < c.photometric_reference_spacing * depth
                     and np.linalg.norm(so3_log(rel[:3, :3])) < c.photometric_reference_angle_rad):
                 return
-        self._reference = reference_view(T_map_cam, *view_flies, c.photometric_flies, 0.3, c.photometric_levels)
+        positions, fit, image, image_pyramid = view_flies
+        self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
+                                         c.photometric_levels, image_pyramid)
 
     def _photometric(self, new_pyramid, T_start: np.ndarray, T_pred: np.ndarray, source: str, search: bool = False):
-        """(Fix, '') from aligning the best-placed keyframe view's flies into the new image from
-        ``T_start``, or (None, why); a fix implausibly far from the prediction is refused."""
+        """(Fix, '') from aligning the tracking reference's flies into the new image from ``T_start``,
+        or (None, why); a fix implausibly far from the prediction is refused."""
         if self._reference is None:
             return None, "no reference view yet"
         c = self.config

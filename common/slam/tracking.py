@@ -32,15 +32,17 @@ class ReferenceView:
         return self._pyramid
 
 
-def reference_view(T_map_cam, positions_cam, fitness, image, count: int, near_m: float, levels: int) -> ReferenceView:
-    """The ``count`` fittest flies in front of the camera (beyond ``near_m``) with their image."""
+def reference_view(T_map_cam, positions_cam, fitness, image, count: int, near_m: float, levels: int,
+                   image_pyramid: list[np.ndarray] | None = None) -> ReferenceView:
+    """The ``count`` fittest flies in front of the camera (beyond ``near_m``) with their image (and
+    its pyramid, when the caller already built it from that image)."""
     P = np.asarray(positions_cam, np.float32)
     f = np.asarray(fitness, np.float32)
     ok = np.flatnonzero(np.isfinite(P).all(1) & np.isfinite(f) & (f > 0) & (P[:, 2] > near_m))
     keep = ok[np.argsort(-f[ok], kind="stable")[:count]]
     grey = image if image.ndim == 2 else image.mean(axis=2).astype(np.uint8)
     return ReferenceView(np.asarray(T_map_cam, float).copy(), P[keep].copy(), f[keep].copy(),
-                         np.ascontiguousarray(grey), levels)
+                         np.ascontiguousarray(grey), levels, image_pyramid)
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
