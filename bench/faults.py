@@ -31,7 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-import msgpack  # noqa: E402
+import numpy as np  # noqa: E402
+from common import messages as m  # noqa: E402
 
 from common.bus import BusOptions, Node  # noqa: E402
 from common.recording import RecordingReader, segments_of  # noqa: E402
@@ -164,9 +165,8 @@ def recorder_restarts(tmp: Path, kills: int, rate_hz: float, lifetime_s: float) 
             t_end = time.monotonic() + lifetime_s
             while time.monotonic() < t_end:
                 published += 1
-                pub.put_raw(msgpack.packb({"schema": "flyslam.WheelOdometry", "major": 1, "seq": published,
-                                           "stamp_ns": time.time_ns(), "frame_id": "base_link",
-                                           "wheel_speeds": [1.0, 1.0]}))
+                pub.put_raw(m.encode(m.WheelOdometry(wheel_speeds=np.ones(2),
+                                                     header=m.header(published, time.time_ns(), m.BASE_LINK))))
                 time.sleep(1 / rate_hz)
             if life < kills:
                 rec.send_signal(signal.SIGKILL)

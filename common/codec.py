@@ -24,6 +24,7 @@ The schemas themselves are in :mod:`common.messages`, which re-exports this modu
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import types
 import typing
@@ -255,10 +256,16 @@ def _decode_scalar(value: Any, tp, where: str):
     raise TypeError(f"unsupported field type {tp!r} at {where}")  # a bug in a schema, not in a payload
 
 
+@functools.cache
+def _type_hints(cls) -> dict:
+    """A schema's resolved field types (resolving them costs more than decoding a small message)."""
+    return typing.get_type_hints(cls)
+
+
 def _decode_struct(obj: Any, cls, where: str):
     if not isinstance(obj, dict):
         raise WrongType(f"{where}: expected a map, got {type(obj).__name__}")
-    hints = typing.get_type_hints(cls)
+    hints = _type_hints(cls)
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name == "header":

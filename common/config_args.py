@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import types
 import typing
 from typing import Iterable
 
@@ -32,7 +33,7 @@ def _base_type(hint):
     """(element type, is_tuple) of a field's annotation."""
     origin = typing.get_origin(hint)
     args = [a for a in typing.get_args(hint) if a is not type(None)]
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)) and len(args) == 1:
+    if origin in (typing.Union, types.UnionType) and len(args) == 1:
         return _base_type(args[0])
     if origin is tuple or hint is tuple:
         return (args[0] if args else float), True

@@ -85,9 +85,9 @@ def body(node, args) -> int:
             with lock:
                 save_map_logged(core, map_path, quiet=True)
             last_map = time.monotonic()
-    if run.tum and core.stamps:
+    if run.tum and core.localised:
         write_tum(run.tum, *core.trajectory())
-        log.info("wrote %d poses to %s", len(core.stamps), run.tum)
+        log.info("wrote %d poses to %s", core.localised, run.tum)
     if map_path is not None:
         save_map_logged(core, map_path)
     return 0

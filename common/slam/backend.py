@@ -33,6 +33,14 @@ class LoopClosure:
     reason: str = ""
 
 
+def odometry_sigmas(config, distance_m: float, turned_rad: float) -> tuple[float, float]:
+    """σ (m, rad) of odometry over ``distance_m`` driven and ``turned_rad`` turned (LocaliserConfig's
+    prior_sigma_* model): the localiser's prior since its last fix and the graph's odometry factors."""
+    sxy = config.prior_sigma_xy[0] + config.prior_sigma_xy[1] * distance_m
+    syaw = config.prior_sigma_yaw[0] + config.prior_sigma_yaw[1] * distance_m + config.prior_sigma_yaw_per_rad * turned_rad
+    return sxy, syaw
+
+
 class KeyframeGraph:
     """Pose graph over the localiser's keyframes.  ``planar``: a wheeled robot (z, roll, pitch held)."""
 
@@ -46,11 +54,8 @@ class KeyframeGraph:
 
     # --------------------------------------------------------------------------- factors
     def _odometry_cov(self, T_i_j: np.ndarray) -> np.ndarray:
-        c = self.config
-        d = float(np.linalg.norm(T_i_j[:3, 3]))
-        yaw = abs(planar_from_transform(T_i_j)[2])
-        sxy = c.prior_sigma_xy[0] + c.prior_sigma_xy[1] * d
-        syaw = c.prior_sigma_yaw[0] + c.prior_sigma_yaw[1] * d + c.prior_sigma_yaw_per_rad * yaw
+        sxy, syaw = odometry_sigmas(self.config, float(np.linalg.norm(T_i_j[:3, 3])),
+                                    abs(planar_from_transform(T_i_j)[2]))
         if self.planar:
             return planar_covariance(np.diag([sxy, sxy, syaw]) ** 2)
         return np.diag([sxy, sxy, sxy, syaw, syaw, syaw]) ** 2
@@ -122,8 +127,7 @@ class KeyframeGraph:
 
     def drop_if_outvoted(self, handle: int) -> bool:
         """Remove a factor the optimised graph down-weighted (an outlier); True if it was removed."""
-        rep = self.graph.report(handle)
-        if rep.weight < self.graph.downweight_below:
+        if self.graph.report(handle).downweighted:
             self.graph.remove_factor(handle)
             return True
         return False

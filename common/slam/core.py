@@ -60,8 +60,7 @@ class LocaliserCore(LatchedInputs):
         super().__init__(odometry if odometry is not None else PoseBuffer(maxlen=1000))
         self.localiser: FlyLocaliser | None = None
         self._last_source_seq: int | None = None
-        self.stamps: list[int] = []
-        self.poses: list[np.ndarray] = []
+        self.localised = 0              # populations localised so far
 
 
     @property
@@ -86,17 +85,12 @@ class LocaliserCore(LatchedInputs):
             T_odom_base = pop.T_odom_camera @ invert(loc.T_base_camera)
         else:
             T_odom_base = self.odometry.at(stamp)
-        extra = {}
-        image = getattr(pop, "image", None)
-        if image is not None:
-            extra["image"] = image
         try:
-            est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, **extra)
+            est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, image=pop.image)
         except LocaliserError as e:
             return LocaliserOutput(reason=f"bad population: {e}")
         p, q = pose_from_transform(est.T_map_odom)
-        self.stamps.append(stamp)
-        self.poses.append(est.T_map_base)
+        self.localised += 1
         return LocaliserOutput(
             pose=m.pose_msg(est.T_map_base, est.covariance, stamp_ns=stamp, status=est.status,
                             source_seq=pop.source_seq),

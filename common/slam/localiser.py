@@ -36,7 +36,7 @@ from common.registration import PopulationError, register_planar
 from common.registration.register import StereoModel
 from common.registration.photometric import pyramid
 from common.registration.weights import visible_mask
-from common.slam.backend import KeyframeGraph, LoopClosure
+from common.slam.backend import KeyframeGraph, LoopClosure, odometry_sigmas
 from common.slam.posegraph import planar_covariance
 from common.slam.tracking import ReferenceView, photometric_fix, reference_view
 
@@ -538,10 +538,7 @@ class FlyLocaliser:
             fix, _ = self._photometric(new_pyramid, T_map_base, T_pred, source)
             if fix is not None:
                 return fixed(fix.T_map_base, fix.covariance, res.delta, links)
-        cov = np.zeros((6, 6))
-        cov[np.ix_([0, 1, 5], [0, 1, 5])] = cov3
-        cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-6
-        return fixed(T_map_base, cov, res.delta, links)
+        return fixed(T_map_base, planar_covariance(cov3), res.delta, links)
 
     def _renew_reference(self, T_map_base: np.ndarray, view_flies) -> None:
         """Make this population the tracking reference once the camera has left the current one's
@@ -629,10 +626,7 @@ class FlyLocaliser:
 
     def _prior_sigmas(self) -> tuple[float, float]:
         """Standard deviations (m, rad) of the odometry prediction since the last accepted registration."""
-        c, d = self.config, self._driven_since_fix
-        sxy = c.prior_sigma_xy[0] + c.prior_sigma_xy[1] * d
-        syaw = c.prior_sigma_yaw[0] + c.prior_sigma_yaw[1] * d + c.prior_sigma_yaw_per_rad * self._turned_since_fix
-        return sxy, syaw
+        return odometry_sigmas(self.config, self._driven_since_fix, self._turned_since_fix)
 
     def _fuse_with_prior(self, params: np.ndarray, info: np.ndarray, source: str):
         """Posterior of f's (x, y, θ) from the prediction (f = identity, covariance growing with the
