@@ -381,6 +381,21 @@ class FlyLocaliser:
         poses = [T if kf is None else kf.T_map_base @ T for _, kf, T in self._history]
         return stamps, np.array(poses).reshape(-1, 4, 4)
 
+    def relocalised(self, stamp_ns: int, T_map_base: np.ndarray, T_odom_base: np.ndarray | None = None) -> None:
+        """Restart tracking from a pose found by a global search over the map (relocalisation): the
+        motion model forgets its velocity, the tracking reference is dropped (the next update builds one
+        at this pose) and map→odom is re-anchored when odometry is known.  The map is not touched."""
+        T_map_base = orthonormalised(np.asarray(T_map_base, dtype=float))
+        self._track = _Tracking()
+        self._track_update(stamp_ns, T_map_base)
+        self._reference = None
+        self._last_fix_stamp = stamp_ns
+        self._driven_since_fix = self._turned_since_fix = 0.0
+        if T_odom_base is not None:
+            T_odom_base = np.asarray(T_odom_base, dtype=float)
+            self.T_map_odom = T_map_base @ invert(T_odom_base)
+            self._last_odom, self._last_odom_stamp = T_odom_base.copy(), stamp_ns
+
     # ------------------------------------------------------------------------------ prediction
     def _predict(self, stamp_ns: int, T_odom_base: np.ndarray | None) -> tuple[np.ndarray, str]:
         if T_odom_base is None:
