@@ -14,7 +14,8 @@ records in file order and, on a truncated or corrupt file, yields what it could 
 the problem (:attr:`RecordingReader.error`) instead of raising half-way.
 
 A run's recording may be several *segments*: a restarted recorder never overwrites, it opens the next
-free name (``recording.mcap``, then ``recording.1.mcap``, ``recording.2.mcap``, …; :func:`open_segment`).
+free name (``recording.mcap``, then ``recording.1.mcap``, ``recording.2.mcap``, …; :func:`open_segment`;
+:func:`claim_segment` names the bridge's ``run.rrd`` segments the same way).
 :class:`RecordingReader` given the base path (or the run's folder) reads every segment, in number
 order, as one recording; given ``recording.1.mcap`` it reads that segment alone.
 
@@ -232,18 +233,28 @@ class RecordingWriter:
         self.close()
 
 
-def open_segment(base: str | Path, **kwargs) -> RecordingWriter:
-    """A writer on the first free segment name of ``base``, after the last existing one; never an
-    existing file, even if another process creates one meanwhile."""
-    if Path(base).is_dir():
-        raise RecordingError(f"{base}: is a directory; give a file name such as {Path(base) / 'recording.mcap'}")
-    existing = _numbered_segments(Path(base))
+def claim_segment(base: str | Path) -> Path:
+    """Create (empty) and return the first free segment name of ``base`` after the last existing one
+    (``base``, ``<stem>.1<suffix>``, …); never an existing file, even if another process creates one
+    meanwhile. Any writer can then open it (MCAP here, Rerun's .rrd in the bridge)."""
+    base = Path(base)
+    if base.is_dir():
+        raise RecordingError(f"{base}: is a directory; give a file name in it")
+    base.parent.mkdir(parents=True, exist_ok=True)
+    existing = _numbered_segments(base)
     n = existing[-1][0] + 1 if existing else 0
     while True:
+        path = segment_path(base, n)
         try:
-            return RecordingWriter(segment_path(base, n), exclusive=True, **kwargs)
+            with open(path, "xb"):
+                return path
         except FileExistsError:
             n += 1
+
+
+def open_segment(base: str | Path, **kwargs) -> RecordingWriter:
+    """A writer on a new segment of the recording ``base`` (:func:`claim_segment`)."""
+    return RecordingWriter(claim_segment(base), **kwargs)
 
 
 def _storable(stamp) -> bool:

@@ -10,6 +10,8 @@ Poses are (N, 4, 4) float64 arrays ``T_world_body``.
 """
 from __future__ import annotations
 
+import os
+import time
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -116,8 +118,50 @@ def parse_tum(text: str, source: str = "<text>") -> tuple[np.ndarray, np.ndarray
     return np.array(stamps, dtype=np.int64), np.stack(poses)
 
 
+def _write_atomically(path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename: a reader (or a process killed
+    mid-write) sees the old file or the new one, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def write_tum(path, stamps_ns, poses) -> None:
-    Path(path).write_text(format_tum(stamps_ns, poses))
+    _write_atomically(path, format_tum(stamps_ns, poses))
+
+
+class TumFile:
+    """A trajectory kept on disk as it grows, for a process that may be killed at any moment.
+
+    :meth:`append` adds a pose; at most every ``period_s`` (and on :meth:`flush`) the whole file is
+    rewritten atomically, formatting only the poses added since the last write. The file always holds
+    a complete TUM trajectory, at most ``period_s`` behind."""
+
+    def __init__(self, path, period_s: float = 1.0):
+        self.path, self.period_s = Path(path), period_s
+        self._text: list[str] = []
+        self._stamps: list[int] = []
+        self._poses: list[np.ndarray] = []
+        self._count = 0
+        self._written_at = time.monotonic()
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, stamp_ns: int, T_world_body: np.ndarray) -> None:
+        self._stamps.append(int(stamp_ns))
+        self._poses.append(T_world_body)
+        self._count += 1
+        if time.monotonic() - self._written_at >= self.period_s:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._stamps:
+            self._text.append(format_tum(np.array(self._stamps, np.int64), np.array(self._poses)))
+            self._stamps, self._poses = [], []
+        _write_atomically(self.path, "".join(self._text))
+        self._written_at = time.monotonic()
 
 
 def read_tum(path) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,9 @@
 
 Built from what the run left in its output folder: the supervisor's ``run.json`` (last heartbeat of every
 service), the trajectories (``estimated.tum``, ``truth.tum``) and the recording (the planner's last command).
-Anything missing is reported as missing, never guessed.
+Anything missing is reported as missing, never guessed. A restarted recorder or bridge leaves several
+segments (``recording.1.mcap``, ``run.1.rrd``, …): the recording is read across all of them, ``files``
+lists every segment (each entry a list of paths) and the view command opens every .rrd at once.
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from common import messages as m
-from common.recording import RecordingError, RecordingReader
+from common.recording import RecordingError, RecordingReader, segments_of
 from common.trajectory import TrajectoryFormatError, read_tum
 from common.trajectory_metrics import TrajectoryMismatch, associate, evaluate
 
@@ -86,7 +88,8 @@ def pipeline_summary(out: Path) -> dict:
             summary["target"] = "reached"
     files = {"rerun": out / "run.rrd", "recording": out / "recording.mcap", "estimated": est_path,
              "truth": gt_path, "logs": out / "logs"}
-    summary["files"] = {k: str(v) for k, v in files.items() if v.exists()}
+    summary["files"] = {k: [str(p) for p in (segments_of(v) if v.is_file() else [v])]
+                        for k, v in files.items() if v.exists()}
     return summary
 
 
@@ -111,7 +114,7 @@ def format_pipeline_summary(s: dict) -> str:
     if s.get("restarts"):
         lines.append(f"  restarts             {s['restarts']}")
     lines.append("  files:")
-    lines += [f"    {k:<10} {p}" for k, p in s.get("files", {}).items()]
+    lines += [f"    {k:<10} {' '.join(paths)}" for k, paths in s.get("files", {}).items()]
     if "rerun" in s.get("files", {}):
-        lines.append(f"  view it:  .venv/bin/rerun {s['files']['rerun']}")
+        lines.append(f"  view it:  .venv/bin/rerun {' '.join(s['files']['rerun'])}")
     return "\n".join(lines)

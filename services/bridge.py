@@ -30,6 +30,7 @@ import numpy as np
 import rerun as rr
 
 from common import streams as S
+from common.recording import claim_segment
 from common.viz import RerunLogger, blueprint
 from services.base import run_service, service_parser
 
@@ -45,7 +46,8 @@ INBOX_MAX_BYTES = 32 * 1024 * 1024
 
 def build_parser():
     p = service_parser("bridge", __doc__.splitlines()[0])
-    p.add_argument("--rrd", help="write the recording to this .rrd file (flushed and closed on stop)")
+    p.add_argument("--rrd", help="write the recording to this .rrd file (flushed and closed on stop); "
+                                    "if it exists, to the next free <stem>.<n>.rrd segment")
     p.add_argument("--grpc-port", type=int, default=9876, help="live gRPC server for viewers (0: none)")
     p.add_argument("--web-port", type=int, default=9090, help="web viewer over HTTP (0: none; needs --grpc-port)")
     p.add_argument("--bind", default="127.0.0.1",
@@ -79,6 +81,8 @@ def open_sinks(args) -> tuple[list, str | None]:
         path = Path(args.rrd)
         if not path.parent.is_dir():
             raise SystemExit(f"bridge: directory of --rrd {path} does not exist")
+        path = claim_segment(path)   # a restarted bridge writes run.1.rrd, … and never overwrites
+        log.info("writing %s", path)
         sinks.append(rr.FileSink(str(path)))
     if args.grpc_port:
         if _port_free(args.bind, args.grpc_port):

@@ -8,7 +8,8 @@ Publishes ``stereo/frame`` (rectified pair), ``stereo/calibration`` (latched, re
 Runs in real time (``--rate`` scales it); in closed loop (``--closed-loop``) it drives by the newest
 ``planner/cmd_vel``, stops the robot when commands stop arriving for ``--cmd-timeout`` seconds, and with
 ``--end-on-target S`` exits 0 once the planner has said 'target reached' for S seconds.
-Writes the ground-truth trajectory as TUM text with ``--truth-tum``.
+Writes the ground-truth trajectory as TUM text with ``--truth-tum``: rewritten atomically every second
+and on exit, so a simulator killed with SIGKILL leaves it too, at most a second short.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from common.sim.bus_messages import camera_messages, odometry_message, sonar_mes
 from common.sim.scenario import ScenarioError, scenario_path
 from common.sim.sensors import OdometryReading, SonarReading
 from common.sim.simulator import CameraDue
-from common.trajectory import write_tum
+from common.trajectory import TumFile
 from services.base import run_service, service_parser
 
 log = logging.getLogger("flyslam.sim")
@@ -47,7 +48,7 @@ def build_parser():
                    help="closed loop: exit 0 once the planner has said 'target reached' for S simulated seconds")
     p.add_argument("--depth", action="store_true", help="also publish the ground-truth depth map")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds to run (default: until the path ends)")
-    p.add_argument("--truth-tum", default=None, help="write the ground-truth trajectory (TUM) here on exit")
+    p.add_argument("--truth-tum", default=None, help="write the ground-truth trajectory (TUM) here, every second and on exit")
     return p
 
 
@@ -99,7 +100,7 @@ class TargetHold:
         return (sim_time_ns - self.since_ns) * 1e-9 >= self.seconds
 
 
-def publish_events(node, pubs: dict, sim: Simulator, events, t0_ns: int, args, truth: list) -> None:
+def publish_events(node, pubs: dict, sim: Simulator, events, t0_ns: int, args, truth: TumFile | None) -> None:
     """Publish one batch of simulator events stamped with wall-clock start + simulated time."""
     for ev in events:
         stamp = t0_ns + ev.stamp_ns
@@ -112,7 +113,8 @@ def publish_events(node, pubs: dict, sim: Simulator, events, t0_ns: int, args, t
             node.progress += 1
             for stream, msg in camera_messages(images, node.progress, stamp, args.encoding, args.depth).items():
                 pubs[stream].publish(msg)
-            truth.append((stamp, images.T_map_base))
+            if truth is not None:
+                truth.append(stamp, images.T_map_base)
 
 
 def body(node, args) -> int:
@@ -129,7 +131,7 @@ def body(node, args) -> int:
         node.subscribe(S.PLANNER_CMD_VEL, callback=inbox.put)
         sim.set_command(0.0, 0.0)
     t0_ns, t0_wall, last_static = time.time_ns(), time.monotonic(), -1e9
-    truth: list = []
+    truth = TumFile(args.truth_tum) if args.truth_tum else None
     while not node.stopping:
         if args.duration is not None and sim.time_ns * 1e-9 >= args.duration:
             break
@@ -153,8 +155,8 @@ def body(node, args) -> int:
             break
         publish_events(node, pubs, sim, events, t0_ns, args, truth)
         node.rates.update(sim_time_s=sim.time_ns * 1e-9, clearance_m=sim.clearance())
-    if args.truth_tum and truth:
-        write_tum(args.truth_tum, np.array([t for t, _ in truth], np.int64), np.array([T for _, T in truth]))
+    if truth is not None and len(truth):
+        truth.flush()
         log.info("wrote ground truth (%d poses) to %s", len(truth), args.truth_tum)
     log.info("published %d frames; %d collisions", node.progress, sim.collisions)
     return 0
