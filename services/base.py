@@ -6,6 +6,7 @@ import logging
 from contextlib import contextmanager
 from typing import Callable
 
+from common.allocator import retain_freed_memory
 from common.bus import Node, add_bus_arguments, bus_options, setup_logging
 from common.config_args import config_from_args
 
@@ -48,6 +49,7 @@ def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node
     cleanly (files closed, liveliness token withdrawn).
     """
     args = parser.parse_args(argv)
+    retain_freed_memory()   # per-frame arrays reused, not page-faulted in again (common.allocator)
     setup_logging(name, getattr(args, "log_level", None))
     with Node(name, bus_options(args)) as node:
         return int(body(node, args) or 0)
