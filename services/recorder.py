@@ -68,7 +68,7 @@ def key_pattern(expr: str) -> re.Pattern:
 def body(node, args) -> int:
     backlog = RecorderBacklog(int(args.max_backlog_mb * 1e6))
     run_config = json.loads(Path(args.run_config).read_text()) if args.run_config else None
-    writer = open_segment(args.out, chunk_size=int(args.chunk_mb * 1e6))
+    writer = open_segment(args.out, chunk_size=int(args.chunk_mb * 1e6), compression="lz4")   # zstd: 1.7x the CPU, 16 % smaller
     if run_config is not None:
         writer.add_config(run_config)
     patterns = [key_pattern(node.key(k)) for k in args.keys]
