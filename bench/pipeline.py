@@ -10,7 +10,8 @@ Prints, and with --json as one JSON object on the last line:
 - pose_latency_p50_ms / pose_latency_p99_ms: from a frame's publication to the publication of the
   localiser's pose estimate for that frame (both taken as receive times here, one clock);
 - frames_skipped_fraction: frames the evolver never worked on (its latest-value input dropped them);
-- evolver_generations_per_s: from the evolver's heartbeat;
+- evolver_generations_per_s, evolver_degraded_frames (frames evolved while the evolver ran degraded:
+  it got less CPU than it asked for), evolver_cpu_share: from the evolver's last heartbeat;
 - peak_rss_mb: peak of the sum of all services' resident memory; rss_growth_mb: second half of the run
   minus first half (≈ 0 when memory is flat; start-up falls in the first half), rss_growth_after_warmup_mb:
   last quarter minus second quarter. Figures only, no pass/fail.
@@ -86,7 +87,8 @@ module = "services.fusion"
 [[service]]
 name = "evolver"
 module = "services.evolver"
-args = ["--threads", "1", "--settle-ms", "{settle}", "--recovery", "{recovery}", "--duty", "{duty}", "--trace"]
+args = ["--threads", "1", "--settle-ms", "{settle}", "--recovery", "{recovery}", "--duty", "{duty}",
+        "--cpu-budget", "{cpu_budget}", "--trace"]
 
 [[service]]
 name = "localiser"
@@ -253,6 +255,8 @@ def main(argv=None) -> int:
                    help="evolver publishes once the population's mean fitness is back to this fraction of the "
                         "previous frame's (2 = never: always the whole --settle-ms, the old behaviour)")
     p.add_argument("--duty", type=float, default=0.7, help="evolver's duty cycle between frames")
+    p.add_argument("--cpu-budget", type=float, default=0.35,
+                   help="evolver evolves between frames only while under this fraction of a core")
     p.add_argument("--image-hz", type=float, default=5.0, help="bridge's image/flies logging rate")
     p.add_argument("--no-nice", action="store_true", help="run every service at normal priority")
     p.add_argument("--out", default=str(ROOT / "bench" / "out" / "pipeline"))
@@ -284,7 +288,8 @@ def main(argv=None) -> int:
               f"load {r['loadavg_1min_at_start']} -> {r['loadavg_1min']}")
         print(f"{label}pose latency p50 {r['pose_latency_p50_ms']} ms, p99 {r['pose_latency_p99_ms']} ms "
               f"(frame published -> pose published for that frame)")
-        print(f"{label}evolver {r['evolver_generations_per_s']} generations/s; services' memory peak "
+        print(f"{label}evolver {r['evolver_generations_per_s']} generations/s, degraded for "
+              f"{r['evolver_degraded_frames']} frames (CPU share {r['evolver_cpu_share']}); services' memory peak "
               f"{r['peak_rss_mb']} MB, growth {r['rss_growth_mb']} MB (second half vs first)")
         total = (r["cpu_ms_per_frame"] or {}).get("total")
         print(f"{label}CPU while frames flow: {(r['cpu_pct_of_one_core'] or {}).get('total')} % of one core, "
@@ -306,7 +311,8 @@ def run_once(args, out: Path, recording: Path) -> dict:
     nice = {"nice_recorder": 0, "nice_bridge": 0, "nice_planner": 0} if args.no_nice else \
         {"nice_recorder": 10, "nice_bridge": 10, "nice_planner": 5}
     launch.write_text(LAUNCH.format(duration=args.seconds + 30, settle=args.settle_ms, recording=recording,
-                                    recovery=args.recovery, duty=args.duty, image_hz=args.image_hz, **nice))
+                                    recovery=args.recovery, duty=args.duty, cpu_budget=args.cpu_budget,
+                                    image_hz=args.image_hz, **nice))
 
     frame_seen: dict[int, float] = {}
     pose_seen: dict[int, float] = {}
@@ -436,6 +442,8 @@ def run_once(args, out: Path, recording: Path) -> dict:
         "pose_latency_p99_ms": round(float(np.percentile(lat, 99)), 1) if lat.size else None,
         "frames_skipped_fraction": round(1 - evolved / frames, 3) if frames else None,
         "evolver_generations_per_s": round(float(evo.rates.get("generations_per_s", 0)), 1) if evo else None,
+        "evolver_degraded_frames": int(evo.counters.get("degraded_frames", 0)) if evo else None,
+        "evolver_cpu_share": evo.rates.get("cpu_share") if evo else None,
         "peak_rss_mb": round(float(rss[:, 1].max()), 1) if len(rss) else None,
         "rss_growth_mb": round(float(np.median(rss[half:, 1]) - np.median(rss[:half, 1])), 1) if half > 2 else None,
         # The first half includes start-up (imports, numba compilation, the first keyframes), so also: last
@@ -453,7 +461,8 @@ def run_once(args, out: Path, recording: Path) -> dict:
         "cpu_ms_per_frame": cpu_ms,
         "rss_growth_by_service_mb": {k: round(float(np.median(v[len(v) // 2:]) - np.median(v[:len(v) // 2])), 1)
                                      for k, v in sorted(rss_by_service.items()) if len(v) > 6},
-        "settle_ms": args.settle_ms, "recovery": args.recovery, "duty": args.duty, "image_hz": args.image_hz,
+        "settle_ms": args.settle_ms, "recovery": args.recovery, "duty": args.duty, "cpu_budget": args.cpu_budget,
+        "image_hz": args.image_hz,
         "niced": not args.no_nice,
         "fps": args.fps, "resolution": "640x480", "cores": os.cpu_count(),
         "loadavg_1min": round(os.getloadavg()[0], 2),

@@ -54,6 +54,7 @@ def pipeline_summary(out: Path) -> dict:
     rates = evolver.get("rates", {})
     summary["frames_skipped"] = int(rates.get("frames_skipped", 0)) if rates else None
     summary["generations_per_s"] = round(rates["generations_per_s"], 1) if "generations_per_s" in rates else None
+    summary["frames_degraded"] = evolver.get("counters", {}).get("degraded_frames") if rates else None   # starved of CPU
     summary["restarts"] = {name: s.get("restarts", 0) for name, s in services.items() if s.get("restarts")}
     est_path, gt_path = out / "estimated.tum", out / "truth.tum"
     if est_path.exists() and gt_path.exists():
@@ -98,7 +99,8 @@ def format_pipeline_summary(s: dict) -> str:
         return "-" if s.get(key) is None else f"{s[key]}{unit}"
     lines = ["", "pipeline summary",
              f"  frames rendered      {v('frames')}",
-             f"  frames evolved       {v('frames_used_by_evolver')}  (skipped: {v('frames_skipped')})",
+             f"  frames evolved       {v('frames_used_by_evolver')}  (skipped: {v('frames_skipped')}; "
+             f"degraded, the evolver starved of CPU: {v('frames_degraded')})",
              f"  generations/s        {v('generations_per_s')}"]
     if "ate_rmse_m" in s:
         lines.append(f"  ATE vs ground truth  {s['ate_rmse_m']} m RMSE over {s['path_length_m']} m "

@@ -5,8 +5,15 @@ counted), the calibration ``stereo/calibration`` (latched), the odometry pose ``
 sonar scan ``fusion/sonar``. Each new frame goes through :class:`common.fly.core.EvolverCore` (motion
 compensation, re-scoring, settling until the population is good enough or ``--settle-ms`` is spent —
 the same step ``flyslam eval`` runs) and its population is published on ``flies/population``; between
-frames it keeps evolving and republishes at ``--publish-hz``, spending at most ``--duty`` of a core.
+frames it keeps evolving and republishes at ``--publish-hz``, spending at most ``--duty`` of the wall
+time and only while its CPU over the last second is under ``--cpu-budget`` of a core.
 ``--trace`` publishes each frame's stage times on ``trace/evolver``.
+
+Degraded mode: while the evolver gets less than ``--degraded-share`` of the CPU time it asks for (another
+busy process on its core: :class:`common.fly.scheduling.CpuGovernor`), it stops evolving between frames
+and shortens each frame's settle in proportion, so frames are published sooner and the localiser gets
+the CPU; the newest frame is always the one taken. Its heartbeat then says ``state: degraded``, counts
+``degraded_frames`` and carries ``cpu_share`` and ``cpu_used`` (fractions of a core) in its rates.
 """
 from __future__ import annotations
 
@@ -49,24 +56,27 @@ def body(node, args) -> int:
     frames = node.subscribe_latest(S.STEREO_FRAME)
     out = node.publisher(S.FLIES_POPULATION)
     trace = node.publisher(S.TRACE_EVOLVER) if args.trace else None
+    governor = run.governor()
     last_publish, window = 0.0, (time.monotonic(), 0)
     while not node.stopping:
         if time.monotonic() - window[0] >= 1.0:
             node.rates["generations_per_s"] = (core.generation - window[1]) / (time.monotonic() - window[0])
             window = (time.monotonic(), core.generation)
+            report_governor(node, governor)
         frame = frames.take()
         if frame is not None:
-            with survive(node, "frame", log):
+            with survive(node, "frame", log), governor.work():
                 if calibration.get() is not None:
                     core.on_calibration(calibration.get())
-                if publish_frame(node, core.on_frame(frame), frame, out, trace):
+                if publish_frame(node, core.on_frame(frame, settle_scale=governor.settle_scale()), frame, out, trace):
                     last_publish = time.monotonic()
                     node.rates["frames_skipped"] = float(frames.skipped)
-        elif not core.has_population:
-            node.sleep(0.005)
+                    node.counters.add("degraded_frames", int(governor.degraded))
+        elif not core.has_population or not governor.optional_allowed():
+            node.sleep(0.002)
         else:   # between frames: evolve with a duty cycle, republish at the configured rate
             t0 = time.monotonic()
-            with survive(node, "evolve", log):
+            with survive(node, "evolve", log), governor.work():
                 core.step()
                 if time.monotonic() - last_publish >= 1.0 / run.publish_hz:
                     out.publish(core.population())
@@ -75,6 +85,17 @@ def body(node, args) -> int:
             if run.duty < 1.0:
                 node.sleep(busy * (1.0 / max(run.duty, 0.05) - 1.0))
     return 0
+
+
+def report_governor(node, governor) -> None:
+    """The heartbeat's view of the CPU: share obtained, CPU used, and the degraded state (logged on change)."""
+    node.rates["cpu_share"] = round(governor.share, 3)
+    node.rates["cpu_used"] = round(governor.spent, 3)
+    state = "degraded" if governor.degraded else "running"
+    if state != node.state:
+        log.log(logging.WARNING if governor.degraded else logging.INFO,
+                "%s: the evolver gets %.0f %% of the CPU time it asks for", state, 100 * governor.share)
+        node.state = state
 
 
 _COUNTER = {"no calibration": "frames_without_calibration", "bad calibration": "bad_calibration",

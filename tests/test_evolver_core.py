@@ -84,3 +84,19 @@ def test_latched_input_is_seeded_by_query_and_follows_new_messages(zenoh_port):
         source.queryable("planner/target", lambda: m.Target(x=1.0, y=2.0, radius_m=0.3))   # answers queries only
         assert wait_until(lambda: missing.get() is not None, 10)          # found by the background retry
         assert missing.get().y == 2.0
+
+
+def test_a_settle_scale_below_one_shortens_a_live_settle():
+    from common.fly.scheduling import SettlePolicy
+    core = EvolverCore(EvolverConfig(population=300, depth_min=0.5, depth_max=20.0),
+                       settle=SettlePolicy(budget_s=0.08, recovery=2.0))   # never 'good enough': the whole budget
+    core.on_calibration(m.calibration_to_msg(StereoCalibration.ideal(96, 72), 1, 1))
+    core.on_frame(_frame(96, 72, 1, 1))
+    t0 = time.monotonic()
+    full = core.on_frame(_frame(96, 72, 2, 2 + 33_000_000))
+    t_full = time.monotonic() - t0
+    t0 = time.monotonic()
+    scaled = core.on_frame(_frame(96, 72, 3, 3 + 66_000_000), settle_scale=0.25)
+    t_scaled = time.monotonic() - t0
+    assert scaled.population is not None and scaled.generations >= 1
+    assert t_scaled < 0.6 * t_full and scaled.generations < 0.6 * full.generations

@@ -1,10 +1,11 @@
-"""The evolver's anytime publication: a new frame's population is published once it is good enough."""
+"""The evolver's anytime publication: a new frame's population is published once it is good enough; and its
+CPU governor: it evolves between frames within its CPU budget, and runs degraded when starved of CPU."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from common.fly.scheduling import SettlePolicy, population_quality, settle
+from common.fly.scheduling import CpuGovernor, SettlePolicy, population_quality, settle
 
 
 class RisingEvolver:
@@ -68,3 +69,70 @@ def test_settle_policy_rejects_nonsense():
         SettlePolicy(budget_s=0.02, recovery=-0.1)
     with pytest.raises(ValueError, match="budget"):
         SettlePolicy(budget_s=float("nan"))
+
+
+class Machine:
+    """Wall and thread-CPU clocks of a thread that gets ``share`` of a core while it works."""
+
+    def __init__(self):
+        self.wall, self.cpu, self.share = 0.0, 0.0, 1.0
+
+    def work(self, governor: CpuGovernor, wall_s: float) -> None:
+        with governor.work():
+            self.wall += wall_s
+            self.cpu += wall_s * self.share
+
+    def idle(self, wall_s: float) -> None:
+        self.wall += wall_s
+
+
+def _governor(machine: Machine, budget: float = 0.3) -> CpuGovernor:
+    return CpuGovernor(budget=budget, degraded_below=0.6, recovered_above=0.75,
+                       thread_clock=lambda: machine.cpu, clock=lambda: machine.wall)
+
+
+def test_evolution_between_frames_stops_once_the_cpu_budget_of_the_last_second_is_spent():
+    machine = Machine()
+    governor = _governor(machine, budget=0.3)
+    for _ in range(45):                     # 30 frames/s, 10 ms of work each: 0.3 of a core
+        machine.work(governor, 0.010)
+        machine.idle(1 / 30 - 0.010)
+    assert 0.27 <= governor.spent <= 0.33
+    machine.work(governor, 0.050)
+    assert not governor.optional_allowed()
+    machine.idle(1.5)                       # the window has moved past all of that work
+    assert governor.spent == 0.0 and governor.optional_allowed()
+    assert not governor.degraded and governor.settle_scale() == 1.0
+
+
+def test_a_starved_evolver_runs_degraded_with_shorter_settles_and_recovers_with_hysteresis():
+    machine = Machine()
+    governor = _governor(machine, budget=1.0)
+    machine.share = 0.4                     # another busy process on its core
+    for _ in range(40):
+        machine.work(governor, 0.010)
+    assert governor.degraded and not governor.optional_allowed()
+    assert governor.settle_scale() == pytest.approx(0.4, abs=0.05)
+    machine.share = 0.7                     # between the two thresholds: still degraded
+    for _ in range(40):
+        machine.work(governor, 0.010)
+    assert governor.degraded
+    machine.share = 1.0
+    for _ in range(40):
+        machine.work(governor, 0.010)
+    assert not governor.degraded and governor.settle_scale() == 1.0 and governor.optional_allowed()
+
+
+def test_one_slow_start_up_frame_does_not_decide_the_state_alone():
+    machine = Machine()
+    governor = _governor(machine)
+    machine.share = 0.05                    # e.g. the first frame loads the compiled kernels from disk
+    machine.work(governor, 0.5)
+    assert not governor.degraded
+
+
+def test_cpu_governor_rejects_nonsense():
+    with pytest.raises(ValueError):
+        CpuGovernor(budget=1.5)
+    with pytest.raises(ValueError):
+        CpuGovernor(degraded_below=0.8, recovered_above=0.7)

@@ -11,6 +11,9 @@ eval``) run, so a change to the per-frame step reaches both:
   the previous frame, re-scores them on the new images, evolves them (``settle``: a
   :class:`SettlePolicy` live, a fixed number of generations in lockstep) and returns a
   :class:`FrameResult` with the ``FlyPopulation`` and the ``EvolverTrace`` of that frame.
+  ``settle_scale`` < 1 (from the service's ``common.fly.scheduling.CpuGovernor`` when the machine is
+  overloaded) shortens a live settle's time budget: the frame is published sooner, its CPU left to the
+  localiser.
 * ``step()`` evolves one generation between frames; ``population()`` is the current answer.
 
 Not thread-safe: the service serialises calls.
@@ -29,7 +32,7 @@ from common import messages as m
 from common.camera import CalibrationError, StereoCalibration
 from common.fly.config import EvolverConfig
 from common.fly.evolver import FlyEvolver
-from common.fly.scheduling import SettlePolicy, population_quality, settle
+from common.fly.scheduling import CpuGovernor, SettlePolicy, population_quality, settle
 from common.geometry import invert
 from common.images import frame_images
 from common.core_inputs import LatchedInputs
@@ -50,11 +53,25 @@ class EvolverServiceConfig:
         "help": "publish once mean fitness is back to this fraction of the previous frame's"})
     publish_hz: float = field(default=10.0, metadata={"help": "republish rate between frames (Hz)"})
     duty: float = field(default=0.7, metadata={"help": "fraction of wall time spent evolving between frames"})
+    cpu_budget: float = field(default=0.35, metadata={
+        "help": "evolve between frames only while the last second's CPU is under this fraction of a core"})
+    degraded_share: float = field(default=0.6, metadata={
+        "help": "run degraded (no evolution between frames, shorter settles) while the evolver gets less "
+                "than this fraction of the CPU time it asks for"})
     sonar_weight: float = field(default=0.0, metadata={"help": "weight of the sonar fitness term (0 = off)"})
     seed: int = field(default=0, metadata={"help": "random seed of the evolver"})
 
+    def __post_init__(self):
+        if not 0 <= self.cpu_budget <= 1 or not 0 < self.degraded_share <= 1:
+            raise ValueError(f"cpu_budget must be in [0, 1] and degraded_share in (0, 1], got {self.cpu_budget} "
+                             f"and {self.degraded_share}")
+
     def settle_policy(self) -> SettlePolicy:
         return SettlePolicy(self.settle_ms / 1000, self.min_generations, self.recovery)
+
+    def governor(self) -> CpuGovernor:
+        return CpuGovernor(budget=self.cpu_budget, degraded_below=self.degraded_share,
+                           recovered_above=min(1.0, self.degraded_share + 0.15))
 
 
 @dataclass
@@ -127,7 +144,7 @@ class EvolverCore(LatchedInputs):
                      calib.baseline, self.config.population)
         return None
 
-    def on_frame(self, frame: m.StereoFrame) -> FrameResult:
+    def on_frame(self, frame: m.StereoFrame, settle_scale: float = 1.0) -> FrameResult:
         reason = self._apply_calibration()
         if reason is not None:
             return FrameResult(reason=reason)
@@ -160,6 +177,8 @@ class EvolverCore(LatchedInputs):
                 # were not moved with the camera and must re-converge, so this frame gets 4× the budget.
                 policy = replace(policy, budget_s=4 * policy.budget_s,
                                  min_generations=max(policy.min_generations, NO_ODOMETRY_MIN_GENERATIONS))
+            if settle_scale < 1.0:
+                policy = replace(policy, budget_s=policy.budget_s * max(settle_scale, 0.0))
             generations = settle(evolver, reference, policy)
         else:
             evolver.step(int(self.settle))

@@ -5,11 +5,13 @@ work on the frame, then the localiser's registration of its population. A popula
 and re-scored on the new frame is already most of the answer, so :func:`settle` evolves it only until
 its quality (:func:`population_quality`) is back to a fraction of what it was before the frame
 (:class:`SettlePolicy`), within a time budget, and the service publishes it then instead of after a
-fixed settle time.
+fixed settle time. :class:`CpuGovernor` decides how much the evolver may spend and notices when the machine
+does not give it the CPU it asks for (the pipeline then runs degraded).
 """
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,3 +57,76 @@ def settle(evolver, reference: float | None, policy: SettlePolicy, clock=time.mo
         evolver.step(1)
         generations += 1
     return generations
+
+
+class CpuGovernor:
+    """How much of a core the evolver gets and may spend: the basis of graceful degradation.
+
+    ``work()`` wraps every busy stretch of the evolver's thread (a frame, a generation between frames)
+    and records its CPU time (``thread_clock``) and wall time. From them:
+
+    * ``share``: CPU / wall time of recent work (exponentially smoothed), ≈ 1 when the evolver gets the
+      core it asks for, ~0.5 when another busy process shares that core. Below ``degraded_below`` the
+      machine is overloaded and ``degraded`` is set; it clears above ``recovered_above`` (hysteresis, so
+      it does not flicker).
+    * ``spent``: the CPU time of the last ``window_s`` seconds, in fractions of one core.
+      ``optional_allowed()`` — evolving between frames, which only polishes the population — is true
+      while ``spent`` is under ``budget`` and the machine is not overloaded: the frames' own work always
+      runs, the extra work gives way first.
+    * ``settle_scale()``: the factor on a frame's settle budget, ``share`` when degraded (the settle's
+      wall budget buys that much less CPU, and shortening it hands the CPU to the localiser), else 1.
+    """
+
+    def __init__(self, budget: float = 0.35, degraded_below: float = 0.6, recovered_above: float = 0.75,
+                 window_s: float = 1.0, smoothing: float = 0.1, thread_clock=time.thread_time,
+                 clock=time.monotonic):
+        if not 0 <= budget <= 1 or not 0 < degraded_below <= recovered_above <= 1 or window_s <= 0 \
+                or not 0 < smoothing <= 1:
+            raise ValueError(f"budget in [0, 1], 0 < degraded_below <= recovered_above <= 1, window_s > 0 and "
+                             f"smoothing in (0, 1] expected, got {budget}, {degraded_below}, {recovered_above}, "
+                             f"{window_s}, {smoothing}")
+        self.budget, self.degraded_below, self.recovered_above = budget, degraded_below, recovered_above
+        self.window_s, self.smoothing = window_s, smoothing
+        self._thread_clock, self._clock = thread_clock, clock
+        self.share = 1.0
+        self.degraded = False
+        self._recent: list[tuple[float, float]] = []    # (end time, CPU s) of the window's busy stretches
+
+    @contextmanager
+    def work(self):
+        """Account the enclosed busy stretch (CPU and wall time of this thread)."""
+        wall0, cpu0 = self._clock(), self._thread_clock()
+        try:
+            yield
+        finally:
+            self.record(self._thread_clock() - cpu0, self._clock() - wall0)
+
+    def record(self, cpu_s: float, wall_s: float) -> None:
+        now = self._clock()
+        self._recent.append((now, cpu_s))
+        self._forget(now)
+        if wall_s > 1e-4:     # a stretch too short to time says nothing about the share
+            # Weighted by duration: a long stretch says more about the machine than a short one.
+            a = min(0.3, self.smoothing * wall_s / 0.002)
+            self.share += a * (min(cpu_s / wall_s, 1.0) - self.share)
+        if self.degraded and self.share > self.recovered_above:
+            self.degraded = False
+        elif not self.degraded and self.share < self.degraded_below:
+            self.degraded = True
+
+    def _forget(self, now: float) -> None:
+        cut = now - self.window_s
+        while self._recent and self._recent[0][0] < cut:
+            self._recent.pop(0)
+
+    @property
+    def spent(self) -> float:
+        """CPU time of the last ``window_s`` seconds, as a fraction of one core."""
+        self._forget(self._clock())
+        return sum(c for _, c in self._recent) / self.window_s
+
+    def optional_allowed(self) -> bool:
+        return not self.degraded and self.spent < self.budget
+
+    def settle_scale(self) -> float:
+        return max(self.share, 0.25) if self.degraded else 1.0
