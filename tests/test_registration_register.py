@@ -87,7 +87,7 @@ def test_plane_sliding_along_itself_is_reported_flat():
     res = register_planar(A, B, plane="optical")
     assert not res.ok
     assert "flat" in res.reason or "boundary" in res.reason
-    assert res.flatness < 0.02
+    assert res.flatness < 1.0          # 3σ along the ground wider than the search window
 
 
 @pytest.mark.parametrize("A,B,word", [
@@ -115,9 +115,11 @@ def test_corridor_constrains_lateral_motion_better_than_longitudinal():
     assert res.params[0] == pytest.approx(0.1, abs=0.02)
     sx, sz, _ = res.std
     assert sz > 5 * sx
-    # With the default threshold, a corridor this featureless is flagged as flat along z.
-    flagged = register_planar(A, B, plane="optical")
-    assert not flagged.ok and "flat" in flagged.reason
+    # Soft is not flat: the default threshold lets it through, its σ_z saying how soft (and the error is
+    # within it); test_registration_covariance.py has the window that cannot place it.
+    default = register_planar(A, B, plane="optical")
+    assert default.ok, default.reason
+    assert abs(default.params[1] - 0.4) < 3 * default.std[1]
 
 
 def test_malformed_input_raises():

@@ -1,17 +1,22 @@
-"""Curvature of the registration objective at its minimum: Hessian, flatness, per-fly gradients.
+"""Curvature of the registration objective at its minimum: Hessian, covariance, flatness.
 
 The Hessian H comes from central differences of the analytic gradient, or, where that is not positive
 definite, from second differences of the values (_value_hessian: a cusp minimum passes, a saddle does
-not).  Flatness is the smallest eigenvalue of H, rotations scaled to metres of arc at the populations'
-radius, over the stiffest curvature: the larger of H's largest eigenvalue and the curvature under a
-free 3-D translation (so a ground plane under a planar search, flat in all three parameters, is flat).
-The centred per-fly gradients feed the sandwich covariance.  Design: docs/design/registration.md.
+not).  The covariance is a cluster-robust sandwich (_clustered_meat): A's flies are grouped into cells
+as wide as the kernel's core, 2 (ε + the flies' median spacing), because flies that close read the
+same few B flies and so share B's sampling error; the per-cell sums of the centred per-fly gradients
+are the independent terms.  Flatness is how well the minimum is pinned inside the search window: one
+over three standard deviations along the worst direction, in units of the window's half-widths
+(< 1: the 3σ interval is wider than the window, the data do not place the minimum).  stiffness_ratio
+keeps the old curvature ratio (H's smallest over its stiffest eigenvalue, rotations as metres of arc)
+as a diagnostic.  Design: docs/design/registration.md.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .objective import PLANES
 
@@ -21,14 +26,17 @@ class _Curvature:
     H: np.ndarray          # Hessian of the objective in the pose params
     Hs: np.ndarray         # the same with rotations as metres of arc at the populations' radius
     eig: np.ndarray        # eigenvalues of Hs
-    flatness: float        # eig_min / the stiffest curvature (module docstring)
-    Jf: np.ndarray         # per-fly gradients, centred (for the sandwich covariance)
+    stiffness_ratio: float  # eig_min / the stiffest curvature (diagnostic, module docstring)
+    Jf: np.ndarray         # per-fly gradients, centred
     evaluations: int
+    covariance: np.ndarray | None = None   # clustered sandwich (params²); None when H is not invertible
+    flatness: float = float("nan")         # 1 / (3σ along the worst direction, window units)
 
 
-def _curvature(mode, k, full, pose, p_best, rc, radius) -> _Curvature:
+def _curvature(mode, k, full, pose, p_best, rc, radius, half) -> _Curvature:
     """The minimum's curvature: the Hessian (gradient differences, or values at a cusp), its scaled
-    eigenvalues, the flatness against the stiffest curvature, and the per-fly gradients."""
+    eigenvalues, the stiffness ratio, the covariance and the flatness within the window of half-widths
+    `half` (zero: a pinned parameter, left out of the flatness)."""
     evals = 0
     L = max(radius, 1e-9)
     fd = np.array([min(0.25 * rc, 0.02) if (mode == "6dof" and i < 3) or (mode in PLANES and i < 2)
@@ -71,8 +79,55 @@ def _curvature(mode, k, full, pose, p_best, rc, radius) -> _Curvature:
         H3 = full.translation_hessian(p_best, fd[0])
         evals += 6
     stiff = max(eig[-1], float(np.linalg.eigvalsh(H3)[-1]))
-    flatness = float(eig[0] / stiff) if stiff > 0 else float("nan")
-    return _Curvature(H, Hs, eig, flatness, Jf, evals)
+    ratio = float(eig[0] / stiff) if stiff > 0 else float("nan")
+    curv = _Curvature(H, Hs, eig, ratio, Jf, evals)
+    if eig[0] > 0:
+        curv.covariance = _sandwich(H, _clustered_meat(full.A, Jf, full.field.eps, full.field.B))
+        curv.flatness = _flatness(curv.covariance, half)
+    return curv
+
+
+def _sandwich(H, meat):
+    """H⁻¹ (2 · meat) H⁻¹, symmetrised: meat sums over A's flies; B's flies, measured the same way, add
+    as much again (docs/design/registration.md)."""
+    Hi = np.linalg.inv(H)
+    cov = 2.0 * Hi @ meat @ Hi
+    return 0.5 * (cov + cov.T)
+
+
+def _clustered_meat(A, Jf, eps, B):
+    """Σ_c G_c G_cᵀ, G_c the sum of the per-fly gradients Jf (centred) of the flies of A in cell c.
+
+    Cells are 2 (ε + s) wide, s the median distance from a fly of B to its nearest neighbour in B: the
+    reach of the kernel 1/(ε + d)'s core plus B's sampling, over which two flies of A read the same B
+    flies, so their terms move together when B's sampling moves the field.  (So cloning A's flies adds
+    no information: the clones share a cell.)  Averaged over two grids offset by half a cell, so the
+    result does not hinge on where a cell boundary falls.  Cells of one fly give the plain sandwich.
+    """
+    if len(A) < 2 or len(B) < 2:
+        return Jf.T @ Jf
+    spacing = float(np.median(cKDTree(B).query(B, k=2)[0][:, 1]))
+    size = 2.0 * (eps + spacing)
+    meat = np.zeros((Jf.shape[1], Jf.shape[1]))
+    for offset in (0.0, 0.5):
+        cells = np.floor(A / size + offset).astype(np.int64)
+        _, cell_of = np.unique(cells, axis=0, return_inverse=True)
+        G = np.zeros((int(cell_of.max()) + 1, Jf.shape[1]))
+        np.add.at(G, cell_of.ravel(), Jf)
+        meat += 0.5 * (G.T @ G)
+    return meat
+
+
+def _flatness(cov, half):
+    """1 / (3σ_max), σ_max the largest standard deviation of the free parameters in units of the window's
+    half-widths: below 1 the minimum is not pinned down inside the window along some direction."""
+    free = np.asarray(half) > 0
+    if not free.any():
+        return float("inf")
+    h = np.asarray(half, dtype=float)[free]
+    cu = cov[np.ix_(free, free)] / np.outer(h, h)
+    worst = float(np.linalg.eigvalsh(cu)[-1])
+    return float(1.0 / (3.0 * np.sqrt(worst))) if worst > 0 else float("inf")
 
 
 def _value_hessian(fun, p, fd):

@@ -9,11 +9,13 @@ z) and (tx, ty, tz, ωx, ωy, ωz) for :func:`register_6dof`.  B's field is buil
 search is a coarse lattice on a smoothed objective, a polish of its distinct minima and a refine of
 the best two on the full objective (see docs/design/registration.md for the design).
 
-Invariants: the result stays inside prior ± window; ``res.covariance`` is the sandwich estimate in
-params² (NaN with ``curvature=False`` or on failure); well-formed but unusable input — too few flies, a
-minimum on the window's edge, not a minimum, a flat or ambiguous minimum — gives ``res.ok`` False with
-``res.reason`` and never raises; malformed input (wrong shapes, NaN, a non-rigid prior) raises
-PopulationError.
+Invariants: the result stays inside prior ± window; ``res.covariance`` is the clustered sandwich
+estimate in params² (curvature.py), also on a flat minimum (ok False, large along the flat direction),
+NaN with ``curvature=False`` or on any other failure; a minimum is flat when 3σ along some direction is
+wider than the window (``res.flatness`` < ``flat_ratio`` = 1); well-formed but unusable input — too
+few flies, a minimum on the window's edge, not a minimum, a flat or ambiguous minimum — gives
+``res.ok`` False with ``res.reason`` and never raises; malformed input (wrong shapes, NaN, a non-rigid
+prior) raises PopulationError.
 """
 from __future__ import annotations
 
@@ -49,7 +51,7 @@ class RegistrationResult:
     reason: str = ""
     mode: str = ""
     hessian: np.ndarray | None = None
-    flatness: float = float("nan")     # λ_min/λ_max of the scaled Hessian (0 = perfectly flat)
+    flatness: float = float("nan")     # 1/(3σ) along the worst direction, window units (< 1: flat)
     ambiguity: float = float("nan")    # depth of the 2nd minimum relative to the best's (1 = as deep)
     evaluations: int = 0
     timings: dict = dc_field(default_factory=dict)
@@ -201,7 +203,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
     marks.append(("refine", time.perf_counter()))
     curv = None
     if curvature:
-        curv = _curvature(mode, k, full, pose, p_best, fld.rc, radius)
+        curv = _curvature(mode, k, full, pose, p_best, fld.rc, radius, half)
         evals += curv.evaluations
         marks.append(("covariance", time.perf_counter()))
     # wall-clock milliseconds per stage: setup (validation, subsets, lattice poses), field (build),
@@ -220,24 +222,25 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         return _fail(reason="not a minimum: the Hessian of δ is not positive definite (flat or saddle)",
                      k=k, **common)
     if curv is not None and curv.flatness < flat_ratio:
-        v = np.linalg.eigh(curv.Hs)[1][:, 0]
-        return _fail(reason=f"flat minimum: curvature along {np.round(v, 2).tolist()} is "
-                            f"{curv.flatness:.2g} of the strongest (threshold {flat_ratio})", k=k, **common)
+        # Still a minimum: its covariance is kept (large along the flat direction) for callers that fuse
+        # what the registration does pin down.
+        v = np.linalg.eigh(curv.covariance / np.outer(scale, scale))[1][:, -1]
+        return RegistrationResult(
+            covariance=curv.covariance, ok=False, **common,
+            reason=f"flat minimum: 3σ along {np.round(v, 2).tolist()} (window units) is "
+                   f"{1 / curv.flatness:.2g}× the window's half-width (threshold flatness {flat_ratio})")
     if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
         return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
                             f"nearly as deep ({ambiguity:.2f} of the best's depth)", k=k, **common)
     if curv is None:   # curvature=False: the caller has its own measurement model
         return RegistrationResult(covariance=np.full((k, k), np.nan), ok=True, reason="", **common)
-    Hi = np.linalg.inv(curv.H)
-    cov = 2.0 * Hi @ (curv.Jf.T @ curv.Jf) @ Hi       # ×2: B's flies are as noisy as A's (docs/design)
-    cov = 0.5 * (cov + cov.T)
-    return RegistrationResult(covariance=cov, ok=True, reason="", **common)
+    return RegistrationResult(covariance=curv.covariance, ok=True, reason="", **common)
 
 
 def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, np.deg2rad(10.0)),
                     weights_a=None, weights_b=None, eps: float = 0.1, lattice=(7, 7, 7),
                     max_points: int = 1000, coarse_points: int = 192, min_flies: int = 20,
-                    flat_ratio: float = 0.02, ambiguity_ratio: float = 0.9, field_options=None,
+                    flat_ratio: float = 1.0, ambiguity_ratio: float = 0.9, field_options=None,
                     seed: int = 0, stereo: StereoModel | None = None, objective: str = "delta",
                     local_radius: float = 0.5, lattice_step: float | None = None,
                     curvature: bool = True) -> RegistrationResult:
@@ -269,7 +272,7 @@ def register_planar(A, B, plane: str = "optical", prior=None, window=(1.0, 1.0, 
 
 def register_6dof(A, B, prior=None, window=(1.0, 1.0, 1.0, 0.2, 0.2, 0.2), weights_a=None,
                   weights_b=None, eps: float = 0.1, lattice=(5, 5, 5, 3, 3, 3), max_points: int = 1000,
-                  coarse_points: int = 128, min_flies: int = 20, flat_ratio: float = 0.02,
+                  coarse_points: int = 128, min_flies: int = 20, flat_ratio: float = 1.0,
                   ambiguity_ratio: float = 0.9, field_options=None, seed: int = 0,
                   stereo: StereoModel | None = None, objective: str = "delta",
                   local_radius: float = 0.5, lattice_step: float | None = None) -> RegistrationResult:
