@@ -8,13 +8,16 @@ seed → same trajectory, to the bit with ``EvolverConfig(parallel=False)``; wit
 kernel chosen by timing (common/fly/threads.py) can change the last bits of fitness, and so the result.
 
 Odometry: the wheel odometry's own integrated pose (``pose_xyyaw``) when the recording has it; image-only
-datasets (KITTI, EuRoC) run with the localiser's constant-velocity prediction instead.
+datasets (KITTI, EuRoC) run with the localiser's constant-velocity prediction instead.  A recording has
+wheels when ``odom/wheels`` appears within ``WHEELS_LOOKAHEAD_NS`` of its first frame (a simulator
+writes its first frame before its first odometry message).
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable
+from itertools import chain
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -28,6 +31,24 @@ from common.slam import LocaliserConfig
 from common.slam.core import LocaliserCore
 
 
+WHEELS_LOOKAHEAD_NS = 1_000_000_000
+
+
+def _wheels_ahead(messages: Iterator[RecordedMessage]) -> tuple[bool, list[RecordedMessage]]:
+    """(whether ``odom/wheels`` is recorded near the first frame, the messages read to find out)."""
+    seen, first_frame_ns = [], None
+    for rec in messages:
+        seen.append(rec)
+        stream = rec.key.split("/", 1)[-1]
+        if stream == "odom/wheels":
+            return True, seen
+        if stream == "stereo/frame" and first_frame_ns is None:
+            first_frame_ns = rec.log_time_ns
+        if first_frame_ns is not None and rec.log_time_ns - first_frame_ns > WHEELS_LOOKAHEAD_NS:
+            break
+    return False, seen
+
+
 @dataclass
 class LockstepResult:
     stamps: list = field(default_factory=list)
@@ -39,6 +60,7 @@ class LockstepResult:
     frames: int = 0
     seconds: float = 0.0
     keyframes: int = 0
+    localiser: LocaliserCore | None = None     # the core at the end (its map, e.g. to save)
 
     @property
     def frames_per_s(self) -> float:
@@ -58,12 +80,13 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
     evolver = EvolverCore(evolver_config or EvolverConfig(), settle=generations_per_frame,
                           seed=seed, odometry=PoseBuffer(maxlen=100_000, max_extrapolation_ns=100_000_000))
     localiser_config = localiser_config or LocaliserConfig()
-    localiser = None            # made at the first frame, once it is known whether wheels are recorded
-    wheels = False
+    messages = iter(messages)
+    wheels, ahead = _wheels_ahead(messages)
+    localiser = _start_localiser(localiser_config, wheels, seed, evolver)
     calibration = None
-    first_frame = False
+    first_frame = True
     t0 = time.perf_counter()
-    for rec in messages:
+    for rec in chain(ahead, messages):
         stream = rec.key.split("/", 1)[-1]
         if stream not in ("stereo/calibration", "odom/wheels", "truth/pose", "stereo/frame"):
             continue
@@ -75,14 +98,11 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             evolver.on_calibration(msg)
             calibration = msg
         elif stream == "odom/wheels" and msg.pose_xyyaw is not None:
-            wheels = True
             evolver.on_odometry(msg.header.stamp_ns, planar_pose(*msg.pose_xyyaw))
         elif stream == "truth/pose":
             res.truth_stamps.append(msg.header.stamp_ns)
             res.truth.append(m.transform_of(msg))
         elif stream == "stereo/frame":
-            if localiser is None:
-                localiser, first_frame = _start_localiser(localiser_config, wheels, seed, evolver), True
             if calibration is not None and not localiser.has_calibration:
                 localiser.on_calibration(calibration)
             frame = evolver.on_frame(msg)
@@ -107,7 +127,8 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
             if max_frames and res.frames >= max_frames:
                 break
     res.seconds = time.perf_counter() - t0
-    res.keyframes = len(localiser.keyframes) if localiser is not None else 0
+    res.keyframes = len(localiser.keyframes)
+    res.localiser = localiser
     return res
 
 
