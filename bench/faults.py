@@ -12,6 +12,14 @@
 - Supervisor kill: a supervised recorder and bridge (with its ``rerun --serve-web`` child); after
   ``kill -9`` of the supervisor, ``orphans_after_supervisor_kill`` counts its processes (children and
   grandchildren) alive 5 s later, and ``run_json_state`` is what its run.json says.
+- Pipeline (bench/faults_pipeline.py): the demo's services but the simulator, fed a simulated clip:
+  a ``--flood``× flood for ``--phase-s`` after as long at the nominal rate (``flood_rss_growth_mb`` and
+  ``nominal_rss_growth_mb`` per service, the rate the publishers really reached), ``--hostile``
+  hostile valid-schema messages (``hostile_crashes``), and a localiser SIGKILL
+  (``pose_gap_after_restart_s``, ``trajectory_kept_fraction``). ``--phase-s 0`` skips it.
+- Secured deployment (bench/faults_secured.py): the demo over mutual TLS with access control
+  (``secured_poses``), attacked from another network namespace (``attacker_commands_delivered``;
+  skipped with the reason where ``ip netns`` is not permitted). ``--secured-s 0`` skips it.
 
 ``--json``: one JSON object as the last stdout line.
 """
@@ -36,6 +44,10 @@ from common import messages as m  # noqa: E402
 
 from common.bus import BusOptions, Node  # noqa: E402
 from common.recording import RecordingReader, segments_of  # noqa: E402
+
+from bench.faults_pipeline import pipeline_faults  # noqa: E402
+from bench.faults_secured import secured_run  # noqa: E402
+from tests.hostile_cases import hostile_payloads  # noqa: E402
 
 ENV = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
 FLYSLAM = [sys.executable, "-m", "deploy.cli"]
@@ -256,6 +268,13 @@ def main(argv=None) -> int:
     p.add_argument("--kills", type=int, default=2, help="recorder SIGKILLs (then restarts)")
     p.add_argument("--rate", type=float, default=200.0, help="messages per second published")
     p.add_argument("--lifetime", type=float, default=3.0, help="seconds each recorder records before it is killed")
+    p.add_argument("--phase-s", type=float, default=60.0,
+                   help="seconds at the nominal rate, then as long flooded (0: no pipeline faults)")
+    p.add_argument("--warmup-s", type=float, default=20.0, help="seconds at the nominal rate before measuring")
+    p.add_argument("--flood", type=float, default=10.0, help="flood rate as a multiple of the nominal rate")
+    p.add_argument("--flood-publishers", type=int, default=2, help="publisher processes for the flood")
+    p.add_argument("--hostile", type=int, default=10_000, help="hostile valid-schema messages sent to the pipeline")
+    p.add_argument("--secured-s", type=float, default=60.0, help="seconds of the secured demo run (0: skip it)")
     p.add_argument("--json", action="store_true", help="one JSON object as the last stdout line")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="flyslam-faults-") as d:
@@ -268,6 +287,12 @@ def main(argv=None) -> int:
         result = {"file_and_flag_cases": len(rows), "tracebacks": tracebacks, "one_line_errors": one_line}
         result.update(recorder_restarts(tmp, args.kills, args.rate, args.lifetime))
         result.update(supervisor_kill(tmp))
+        if args.phase_s > 0:
+            result.update(pipeline_faults(tmp, FLYSLAM, ENV, f"tcp/127.0.0.1:{free_port()}", args.phase_s,
+                                          args.warmup_s, hostile_payloads(), args.hostile, args.flood,
+                                          args.flood_publishers))
+        if args.secured_s > 0:
+            result.update(secured_run(tmp, FLYSLAM, ENV, free_port(), args.secured_s))
         result["seconds"] = round(time.monotonic() - t0, 1)
         result["load_average"] = os.getloadavg()[0]
     for k, v in result.items():

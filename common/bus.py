@@ -158,7 +158,10 @@ def _check_secured(conf: zenoh.Config, source) -> None:
     """A TLS configuration must name a real host and existing certificate files (Zenoh itself would
     start with a placeholder host and no certificates, silently alone)."""
     where = f"--config {source}" if source else "the Zenoh configuration"
-    endpoints = json.loads(conf.get_json("connect/endpoints") or "[]") + json.loads(conf.get_json("listen/endpoints") or "[]")
+    endpoints = []
+    for key in ("connect/endpoints", "listen/endpoints"):
+        value = json.loads(conf.get_json(key) or "[]")   # a list, or Zenoh's default {mode: [endpoints]}
+        endpoints += [e for v in value.values() for e in v] if isinstance(value, dict) else value
     placeholder = [e for e in endpoints if isinstance(e, str) and "ROBOT_HOST" in e]
     if placeholder:
         raise BusConfigError(f"{where}: endpoint {placeholder[0]!r} still has the ROBOT_HOST placeholder "

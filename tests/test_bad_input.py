@@ -79,3 +79,16 @@ def test_a_rig_with_zero_baseline_or_focal_length_is_a_calibration_error():
                      [[1, 0, 0], [0, 1, 0], [0, 0, 1]], [-0.1, 0, 0])
     rig = RawStereoRig(640, 480, K, [0] * 5, K, [0] * 5, [[1, 0, 0], [0, 1, 0], [0, 0, 1]], [-0.12, 0, 0])
     assert rectify_rig(rig).baseline == pytest.approx(0.12)
+
+
+def test_a_config_that_leaves_listen_to_zenohs_defaults_is_checked_not_crashed_on(tmp_path):
+    """Without listen endpoints Zenoh's default is a map per mode; the secured-config check once failed on
+    it with an internal error instead of accepting the file (or naming its placeholder)."""
+    from common.bus import BusConfigError, BusOptions, make_config
+
+    good, placeholder = tmp_path / "connect_only.json5", tmp_path / "placeholder.json5"
+    good.write_text('{mode: "peer", connect: {endpoints: ["tcp/127.0.0.1:7447"]}}')
+    placeholder.write_text('{mode: "peer", connect: {endpoints: ["tls/ROBOT_HOST:7447"]}}')
+    make_config(BusOptions(config=str(good)))
+    with pytest.raises(BusConfigError, match="ROBOT_HOST placeholder"):
+        make_config(BusOptions(config=str(placeholder)))
