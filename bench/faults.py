@@ -132,6 +132,7 @@ def file_and_flag_cases(tmp: Path) -> list[tuple[str, list[str], str]]:
         ("--connect garbage", [*record, "--connect", "garbage"], "--connect 'garbage'"),
         ("--cfg nocolon", [*record, "--cfg", "nocolon"], "--cfg expects KEY:JSON5"),
         ("--cfg unknown key", [*record, "--cfg", "no/such/key:true"], "unknown key"),
+        ("--keys not a key expression", [*record, "--keys", "odom/"], "not a Zenoh key expression"),
         ("run --connect garbage", [*run(launch("good", GOOD_SERVICE)), "--connect", "garbage"], "--connect"),
         ("info on an empty folder", ["info", str(tmp / "a_directory.toml")], "no .mcap recording"),
     ]

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
+import zenoh
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -96,6 +97,41 @@ class RecorderBacklog:
         """Messages dropped so far, per key (a copy: the bus's threads keep adding)."""
         with self._ready:
             return dict(self._dropped)
+
+
+class KeyFilter:
+    """Which bus keys a recorder keeps: those one of ``patterns`` includes, by Zenoh's own key-expression
+    rules (``*`` one chunk, ``**`` any number, ``$*`` within a chunk). Each key is decided once and
+    remembered, up to ``cache_size`` keys (then forgotten and decided again: a bus may carry any number
+    of keys). Called from Zenoh's threads: a dict read or write is atomic."""
+
+    def __init__(self, patterns: list[str], cache_size: int = 4096):
+        self._patterns = []
+        for p in patterns:
+            try:
+                self._patterns.append(zenoh.KeyExpr.autocanonize(p))
+            except zenoh.ZError as e:
+                reason = str(e).split(" at ")[0]
+                raise ValueError(f"--keys {p!r} is not a Zenoh key expression ({reason})") from None
+        self.cache_size = cache_size
+        self._decided: dict[str, bool] = {}
+
+    @property
+    def remembered_keys(self) -> int:
+        return len(self._decided)
+
+    def __call__(self, key: str) -> bool:
+        keep = self._decided.get(key)
+        if keep is None:
+            try:
+                concrete = zenoh.KeyExpr(key)
+            except zenoh.ZError:
+                return False
+            keep = any(p.includes(concrete) for p in self._patterns)
+            if len(self._decided) >= self.cache_size:
+                self._decided.clear()
+            self._decided[key] = keep
+        return keep
 
 
 class RecordingError(Exception):

@@ -1,0 +1,48 @@
+"""Which keys the recorder keeps: Zenoh's key-expression rules (common.recording.KeyFilter), decided
+once per key with a bounded memory, and a bad --keys pattern refused with one line before any file."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from common.recording import KeyFilter
+from tests.helpers import ROOT
+
+DEMO_KEYS = ["rig/stereo/calibration", "rig/stereo/frame", "rig/odom/*", "rig/status/*", "rig/**/field",
+             "rig/tr$*/pose"]
+
+
+@pytest.mark.parametrize("key, kept", [
+    ("rig/stereo/frame", True), ("rig/stereo/calibration", True), ("rig/stereo/frames", False),
+    ("rig/odom/wheels", True), ("rig/odom", False), ("rig/odom/wheels/raw", False),   # '*' is one chunk
+    ("rig/status/evolver", True), ("rig/planner/field", True), ("rig/a/b/field", True),   # '**' any number
+    ("rig/truth/pose", True), ("rig/track/pose", True), ("rig/truth/depth", False),      # '$*' in a chunk
+    ("other/stereo/frame", False), ("rig/fusion/pose", False),
+])
+def test_a_key_is_kept_when_a_pattern_includes_it(key, kept):
+    assert KeyFilter(DEMO_KEYS)(key) is kept
+
+
+def test_everything_under_the_robot_and_the_robot_key_itself_with_double_star():
+    keep = KeyFilter(["rig/**"])
+    assert keep("rig") and keep("rig/a/b/c") and not keep("rigs/a")
+
+
+def test_decisions_are_remembered_within_a_bound_and_stay_right_past_it():
+    keep = KeyFilter(["rig/odom/*"], cache_size=100)
+    for i in range(1000):                  # a bus carrying many keys (an attacker's, say)
+        assert keep(f"rig/odom/w{i}") and not keep(f"rig/x/w{i}")
+        assert keep.remembered_keys <= 100
+    assert keep("rig/odom/w5") and keep.remembered_keys <= 100
+
+
+def test_a_bad_pattern_is_refused_with_one_line_and_no_file(tmp_path):
+    with pytest.raises(ValueError, match="--keys 'rig/odom/' is not a Zenoh key expression"):
+        KeyFilter(["rig/odom/"])
+    done = subprocess.run([sys.executable, "-m", "deploy.cli", "record", "--out", str(tmp_path / "r.mcap"),
+                           "--keys", "odom//x"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and "not a Zenoh key expression" in lines[0], done.stderr
+    assert not list(tmp_path.iterdir())
