@@ -13,6 +13,15 @@
 * ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``trajectory()`` the trajectory so far (as the
   back-end now has it); ``save_map(path)`` writes map.mcap, ``initial_map`` starts from a saved one.
 
+Relocalising: started with ``initial_map`` the robot's pose in that map is unknown, so the core first
+searches the map (common.slam.relocalise) with each population.  Until a search succeeds it returns a
+``slam/pose`` whose status is ``'relocalising: <why>'`` (at the best guess so far, covariance 1e4 m²,
+rad²: fusion fuses only status 'ok') and no ``map_to_odom`` (fusion and the planner take that one as
+is); the localiser is not updated, so it adds no keyframe and records no trajectory.  Once found,
+``FlyLocaliser.relocalised`` restarts tracking there and the same population is localised as usual.
+``hint_map_to_odom`` (a restart: the last map→odom published) makes the search a narrow one around
+``hint · T_odom_base``; after ``RelocaliserConfig.hint_frames`` searches without success it searches the whole map.
+
 Not thread-safe: the service serialises calls.
 """
 from __future__ import annotations
@@ -27,6 +36,9 @@ from common.core_inputs import LatchedInputs
 from common.pose_buffer import PoseBuffer
 from common.slam.localiser import Estimate, FlyLocaliser, LocaliserConfig, LocaliserError
 from common.slam.mapfile import FlyMapData, save_map
+from common.slam.relocalise import Relocalisation, Relocaliser, RelocaliserConfig
+
+UNKNOWN_COVARIANCE = np.eye(6) * 1e4    # a relocalising pose says nothing
 
 
 @dataclass
@@ -47,13 +59,15 @@ class LocaliserOutput:
     pose: m.PoseEstimate | None = None
     map_to_odom: m.TransformMsg | None = None
     estimate: Estimate | None = None
-    reason: str | None = None       # 'republished', 'no calibration', 'bad population: ...'
+    reason: str | None = None       # 'republished', 'no calibration', 'bad population: ...', 'relocalising: ...'
 
 
 class LocaliserCore(LatchedInputs):
     def __init__(self, config: LocaliserConfig | None = None, seed: int = 0, odometry: PoseBuffer | None = None,
-                 initial_map: FlyMapData | None = None):
-        """``initial_map``: a saved map (common.slam.mapfile.load_map) the localiser starts from."""
+                 initial_map: FlyMapData | None = None, relocaliser: RelocaliserConfig | None = None,
+                 hint_map_to_odom: np.ndarray | None = None):
+        """``initial_map``: a saved map (common.slam.mapfile.load_map) the localiser starts from, at an
+        unknown pose (relocalising); ``hint_map_to_odom``: where a restart believes odom is in the map."""
         self.config = config or LocaliserConfig()
         self.initial_map = initial_map
         self.seed = seed
@@ -61,6 +75,13 @@ class LocaliserCore(LatchedInputs):
         self.localiser: FlyLocaliser | None = None
         self._last_source_seq: int | None = None
         self.localised = 0              # populations localised so far
+        self.relocalising = initial_map is not None and len(initial_map.keyframes) > 0
+        self.relocaliser_config = relocaliser or RelocaliserConfig()
+        self.relocalisation: Relocalisation | None = None     # the last search (the successful one, once found)
+        self.searches = 0               # relocalisation searches run
+        self._relocaliser: Relocaliser | None = None
+        self._hint = None if hint_map_to_odom is None else np.asarray(hint_map_to_odom, float)
+        self._previous: tuple | None = None   # (best T_map_base, T_odom_base, stamp, streak) of the last search
 
 
     @property
@@ -86,6 +107,10 @@ class LocaliserCore(LatchedInputs):
         else:
             T_odom_base = self.odometry.at(stamp)
         try:
+            if self.relocalising:
+                searched = self._relocalise(pop, T_odom_base)
+                if searched is not None:
+                    return searched
             est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, image=pop.image)
         except LocaliserError as e:
             return LocaliserOutput(reason=f"bad population: {e}")
@@ -97,6 +122,49 @@ class LocaliserCore(LatchedInputs):
             map_to_odom=m.TransformMsg(child_frame_id=m.ODOM, translation=p, rotation=q,
                                        header=m.header(0, stamp, m.MAP)),
             estimate=est)
+
+    def _relocalise(self, pop: m.FlyPopulation, T_odom_base: np.ndarray | None) -> LocaliserOutput | None:
+        """One relocalisation step: None once found (the localiser restarted there), else the
+        'relocalising' output.  Raises LocaliserError on a malformed population."""
+        loc, c = self.localiser, self.config
+        stamp = pop.header.stamp_ns
+        if self._relocaliser is None:
+            self._relocaliser = Relocaliser(loc.map_keyframes(), self.relocaliser_config, stereo=loc.stereo,
+                                            seed=self.seed)
+        points, fit = loc.select_flies(pop.positions, pop.fitness)
+        need = max(c.min_generations, self.relocaliser_config.min_generations)
+        if pop.generation is not None and pop.generation < need:
+            result = Relocalisation(None, f"waiting for the flies to converge (generation {pop.generation} < {need})")
+        else:
+            use_hint = self._hint is not None and T_odom_base is not None and self.searches < self.relocaliser_config.hint_frames
+            hint = self._hint @ T_odom_base if use_hint else None
+            previous = self._carried(T_odom_base, stamp)
+            result = self._relocaliser.search(points, fit, hint=hint, previous=previous,
+                                              streak=self._previous[3] if previous is not None else 0)
+            self.searches += 1
+        self.relocalisation = result
+        if result.T_map_base is not None:
+            loc.relocalised(stamp, result.T_map_base, T_odom_base)
+            self.relocalising = False
+            self._previous = None
+            return None
+        guess = result.best
+        self._previous = None if guess is None else (guess, T_odom_base, stamp, result.streak)
+        shown = guess if guess is not None else (self._hint @ T_odom_base if self._hint is not None
+                                                 and T_odom_base is not None else np.eye(4))
+        status = f"relocalising: {result.reason}"
+        return LocaliserOutput(pose=m.pose_msg(shown, UNKNOWN_COVARIANCE, stamp_ns=stamp, status=status,
+                                               source_seq=pop.source_seq), reason=status)
+
+    def _carried(self, T_odom_base: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
+        """The previous search's best answer moved to now: by odometry, or (none) as it was when the
+        two are at most ``RelocaliserConfig.confirm_gap_s`` apart."""
+        if self._previous is None:
+            return None
+        T, odom_then, then, _ = self._previous
+        if T_odom_base is not None and odom_then is not None:
+            return T @ invert(odom_then) @ T_odom_base
+        return T if 0 <= (stamp_ns - then) * 1e-9 <= self.relocaliser_config.confirm_gap_s else None
 
     def map_message(self, stamp_ns: int) -> m.FlyMap | None:
         if self.localiser is None:
