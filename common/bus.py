@@ -6,8 +6,8 @@
 - :class:`Node` is one service's presence on the bus: its session, key prefix, a liveliness token
   (``<robot>/health/<service>``), a heartbeat (``<robot>/status/<service>``) carrying a progress counter,
   rates and counters, typed publishers and validating subscriptions.
-- Sensor streams use :meth:`Node.subscribe_latest` (a Zenoh RingChannel of depth 1): a slow consumer
-  gets the newest message and the skipped ones are counted from sequence gaps, never queued.
+- Sensor streams use :meth:`Node.subscribe_latest` (a slot of depth 1): a slow consumer gets the
+  newest message and the skipped ones are counted from sequence gaps, never queued.
 - Streams where every message matters (odometry) use :meth:`Node.subscribe` with a callback.
 - Latched inputs (calibration, target, the map) use :meth:`Node.latched`; a service answers queries with
   :meth:`Node.queryable` and watches other services' liveliness with :meth:`Node.watch_liveliness`.
@@ -220,25 +220,34 @@ class _RateLimitedLog:
 
 
 class LatestSubscription:
-    """Latest-value subscription: a Zenoh RingChannel of depth 1 plus validation.
+    """Latest-value subscription: a one-message slot filled by a Zenoh callback, plus validation.
 
-    :meth:`take` returns the newest valid message not yet taken (or None). Messages overwritten before
-    being taken are counted as ``skipped`` from gaps in the envelope's seq (a restart of the publisher,
-    i.e. seq going backwards, is not counted as a gap).
+    :meth:`take` returns the newest valid message not yet taken (or None); :meth:`wait` blocks on the
+    slot (no polling: an idle consumer costs nothing). Only the message taken is decoded. Messages
+    overwritten before being taken are counted as ``skipped`` from gaps in the envelope's seq (a restart
+    of the publisher, i.e. seq going backwards, is not counted as a gap).
     """
 
     def __init__(self, node: "Node", key: str, expected, name: str):
         self._node, self._expected, self.name = node, expected, name
-        self._sub = node.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+        self._ready = threading.Condition()
+        self._payload = None          # the newest zenoh payload not yet taken
+        self._sub = node.session.declare_subscriber(key, self._on_sample)
         self.received = 0
         self.skipped = 0
         self._last_seq: int | None = None
 
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        with self._ready:
+            self._payload = sample.payload
+            self._ready.notify()
+
     def take(self):
-        sample = self._sub.try_recv()
-        if sample is None:
+        with self._ready:
+            payload, self._payload = self._payload, None
+        if payload is None:
             return None
-        msg = self._node.decode(sample.payload.to_bytes(), self._expected, self.name)
+        msg = self._node.decode(payload.to_bytes(), self._expected, self.name)
         if msg is None:
             return None
         self.received += 1
@@ -250,14 +259,18 @@ class LatestSubscription:
         self._last_seq = seq
         return msg
 
-    def wait(self, timeout: float, poll: float = 0.002):
-        """Block up to ``timeout`` seconds (or until the node stops) for the next message."""
+    def wait(self, timeout: float, poll: float = 0.1):
+        """Block up to ``timeout`` seconds (or until the node stops: checked every ``poll`` s) for the
+        next message."""
         deadline = time.monotonic() + timeout
         while not self._node.stopping:
             msg = self.take()
-            if msg is not None or time.monotonic() >= deadline:
+            left = deadline - time.monotonic()
+            if msg is not None or left <= 0:
                 return msg
-            time.sleep(poll)
+            with self._ready:
+                if self._payload is None:
+                    self._ready.wait(min(left, poll))
         return None
 
     def close(self):

@@ -57,13 +57,17 @@ def body(node, args) -> int:
     out = node.publisher(S.FLIES_POPULATION)
     trace = node.publisher(S.TRACE_EVOLVER) if args.trace else None
     governor = run.governor()
-    last_publish, window = 0.0, (time.monotonic(), 0)
+    last_publish, rest_until, window = 0.0, 0.0, (time.monotonic(), 0)
     while not node.stopping:
         if time.monotonic() - window[0] >= 1.0:
             node.rates["generations_per_s"] = (core.generation - window[1]) / (time.monotonic() - window[0])
             window = (time.monotonic(), core.generation)
             report_governor(node, governor)
-        frame = frames.take()
+        now = time.monotonic()
+        resting = now < rest_until                 # the duty cycle's pause after a generation between frames
+        idle = resting or not core.has_population or not governor.optional_allowed()
+        # Idle: block for the next frame (no polling; a frame ends a pause at once).
+        frame = frames.wait(rest_until - now if resting else 0.05) if idle else frames.take()
         if frame is not None:
             with survive(node, "frame", log), governor.work():
                 if calibration.get() is not None:
@@ -72,9 +76,7 @@ def body(node, args) -> int:
                     last_publish = time.monotonic()
                     node.rates["frames_skipped"] = float(frames.skipped)
                     node.counters.add("degraded_frames", int(governor.degraded))
-        elif not core.has_population or not governor.optional_allowed():
-            node.sleep(0.002)
-        else:   # between frames: evolve with a duty cycle, republish at the configured rate
+        elif not idle:   # between frames: evolve with a duty cycle, republish at the configured rate
             t0 = time.monotonic()
             with survive(node, "evolve", log), governor.work():
                 core.step()
@@ -83,7 +85,7 @@ def body(node, args) -> int:
                     last_publish = time.monotonic()
             busy = time.monotonic() - t0
             if run.duty < 1.0:
-                node.sleep(busy * (1.0 / max(run.duty, 0.05) - 1.0))
+                rest_until = time.monotonic() + busy * (1.0 / max(run.duty, 0.05) - 1.0)
     return 0
 
 
