@@ -13,7 +13,7 @@ wrong types, missing fields, unknown schema or major version, shape not matching
 and for values that are well-typed but meaningless (:class:`InvalidValue`): seq outside [0, 2⁵³], a
 negative stamp, any integer field outside int64, and whatever a schema's ``validate()`` method refuses
 (non-finite numbers, positions beyond ``MAX_WORLD_M``, empty images, a non-positive focal length...).
-A schema's ``REQUIRED_FIELDS`` names fields that must be on the wire although they have a default.
+A field declared with :func:`required` must be on the wire although it has a default.
 Services catch ``DecodeError``, count it and carry on; nothing malformed ever escapes as another exception.
 
 A schema is a dataclass registered with :func:`schema`. Its fields are typed with the small vocabulary
@@ -295,9 +295,6 @@ def _decode_struct(obj: Any, cls, where: str):
             kwargs[f.name] = _decode_struct(value, tp, fwhere)
         else:
             kwargs[f.name] = _decode_scalar(value, tp, fwhere)
-    missing = [name for name in getattr(cls, "REQUIRED_FIELDS", ()) if name not in kwargs]
-    if missing:
-        raise MissingField(f"{where}.{missing[0]} is missing")
     out = cls(**kwargs)
     validate = getattr(out, "validate", None)
     if validate is not None:
@@ -407,5 +404,6 @@ def _header_field():
 
 
 def required(default=None):
-    """A nested-struct field that must be present on the wire."""
+    """A field that must be present on the wire (a nested struct, or a value whose default must not stand
+    in for a missing one: an empty VelocityCommand is not a command to stop)."""
     return field(default=default, metadata={"required": True})

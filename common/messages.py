@@ -244,12 +244,11 @@ class FlyMap(Message):
 class VelocityCommand(Message):
     """Differential-drive command in base_link: forward speed (m/s), turn rate (rad/s). ``stop`` with a
     ``reason`` when the planner halts ('target reached', 'no path', ...)."""
-    linear_mps: float = 0.0
-    angular_radps: float = 0.0
+    linear_mps: float = required(0.0)
+    angular_radps: float = required(0.0)
     stop: bool = False
     reason: str = ""
     header: Envelope = _header_field()
-    REQUIRED_FIELDS = ("linear_mps", "angular_radps")
 
     def validate(self) -> None:
         check_range("linear_mps", self.linear_mps, -MAX_SPEED, MAX_SPEED)
@@ -259,11 +258,10 @@ class VelocityCommand(Message):
 @schema("Target")
 class Target(Message):
     """A navigation goal in frame_id (normally map)."""
-    x: float = 0.0
-    y: float = 0.0
+    x: float = required(0.0)
+    y: float = required(0.0)
     radius_m: float = 0.3
     header: Envelope = _header_field()
-    REQUIRED_FIELDS = ("x", "y")
 
     def validate(self) -> None:
         check_range("x", self.x, -MAX_WORLD_M, MAX_WORLD_M)
