@@ -108,9 +108,12 @@ class Array:
     def dtypes(self) -> tuple[str, ...]:
         return (self.dtype,) if isinstance(self.dtype, str) else self.dtype
 
-    def check(self, arr: np.ndarray, where: str) -> None:
-        if arr.dtype.name not in self.dtypes():
-            raise WrongType(f"{where}: dtype {arr.dtype.name}, expected {'/'.join(self.dtypes())}")
+    def check(self, arr: np.ndarray, where: str, dtype_name: str | None = None) -> None:
+        """Raise unless ``arr`` has an allowed dtype and shape (``dtype_name``: its dtype's name when known,
+        which saves numpy the work of spelling it)."""
+        name = dtype_name or arr.dtype.name
+        if name not in self.dtypes():
+            raise WrongType(f"{where}: dtype {name}, expected {'/'.join(self.dtypes())}")
         options = self.shapes if self.shapes is not None else ((self.shape,) if self.shape else None)
         if options is None:
             return
@@ -162,13 +165,21 @@ class Message:
 # ------------------------------------------------------------------------------------ encoding
 
 
+_DTYPE_NAMES = {np.dtype(name): name for name in ALLOWED_DTYPES}
+
+
+@functools.cache
+def _field_names(cls) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls) if f.name != "header")
+
+
 def _encode_value(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         arr = np.ascontiguousarray(value)
-        return {"dtype": arr.dtype.name, "shape": list(arr.shape), "data": arr.tobytes()}
+        return {"dtype": _DTYPE_NAMES.get(arr.dtype) or arr.dtype.name, "shape": list(arr.shape),
+                "data": arr.tobytes()}
     if dataclasses.is_dataclass(value):
-        return {f.name: _encode_value(getattr(value, f.name)) for f in dataclasses.fields(value)
-                if f.name != "header"}
+        return {name: _encode_value(getattr(value, name)) for name in _field_names(type(value))}
     if isinstance(value, (list, tuple)):
         return [_encode_value(v) for v in value]
     if isinstance(value, dict):
@@ -216,7 +227,7 @@ def _decode_array(obj: Any, spec: Array, where: str) -> np.ndarray:
     if count * itemsize != len(data):
         raise ShapeMismatch(f"{where}: shape {shape} × {dtype} needs {count * itemsize} bytes, got {len(data)}")
     arr = np.frombuffer(data, dtype=dtype).reshape(shape)
-    spec.check(arr, where)
+    spec.check(arr, where, dtype)
     return arr
 
 
@@ -256,45 +267,61 @@ def _decode_scalar(value: Any, tp, where: str):
     raise TypeError(f"unsupported field type {tp!r} at {where}")  # a bug in a schema, not in a payload
 
 
+_ARRAY, _STRUCT, _LIST_OF_STRUCTS, _LIST_OF_SCALARS, _SCALAR = range(5)
+
+
 @functools.cache
-def _type_hints(cls) -> dict:
-    """A schema's resolved field types (resolving them costs more than decoding a small message)."""
-    return typing.get_type_hints(cls)
+def _decode_plan(cls) -> tuple:
+    """A schema's fields as (name, kind, what, required), resolved once per schema: resolving type
+    hints and inspecting them cost more than decoding a small message."""
+    hints = typing.get_type_hints(cls)
+    plan = []
+    for f in dataclasses.fields(cls):
+        if f.name == "header":
+            continue
+        tp, optional = _unwrap_optional(hints[f.name])
+        required = f.metadata.get("required", False) or (
+            not optional and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
+        if "array" in f.metadata:
+            kind, what = _ARRAY, f.metadata["array"]
+        elif typing.get_origin(tp) is list:
+            (what,) = typing.get_args(tp)
+            kind = _LIST_OF_STRUCTS if dataclasses.is_dataclass(what) else _LIST_OF_SCALARS
+        elif dataclasses.is_dataclass(tp):
+            kind, what = _STRUCT, tp
+        else:
+            kind, what = _SCALAR, tp
+        plan.append((f.name, kind, what, required))
+    return tuple(plan)
 
 
 def _decode_struct(obj: Any, cls, where: str):
     if not isinstance(obj, dict):
         raise WrongType(f"{where}: expected a map, got {type(obj).__name__}")
-    hints = _type_hints(cls)
     kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name == "header":
-            continue
-        fwhere = f"{where}.{f.name}"
-        tp, optional = _unwrap_optional(hints[f.name])
-        required = f.metadata.get("required", False) or (
-            not optional and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
-        if f.name not in obj or obj[f.name] is None:
+    for name, kind, what, required in _decode_plan(cls):
+        value = obj.get(name)
+        if value is None:
             if required:
-                raise MissingField(f"{fwhere} is missing")
+                raise MissingField(f"{where}.{name} is missing")
             continue
-        value = obj[f.name]
-        if "array" in f.metadata:
-            kwargs[f.name] = _decode_array(value, f.metadata["array"], fwhere)
-        elif typing.get_origin(tp) is list:
-            (item_tp,) = typing.get_args(tp)
+        if kind == _ARRAY:
+            kwargs[name] = _decode_array(value, what, f"{where}.{name}")
+        elif kind == _SCALAR:
+            kwargs[name] = _decode_scalar(value, what, f"{where}.{name}")
+        elif kind == _STRUCT:
+            kwargs[name] = _decode_struct(value, what, f"{where}.{name}")
+        else:
+            fwhere = f"{where}.{name}"
             if not isinstance(value, list):
                 raise WrongType(f"{fwhere}: expected a list, got {type(value).__name__}")
             if len(value) > MAX_LIST_LEN:
                 raise TooLarge(f"{fwhere}: {len(value)} items")
-            if dataclasses.is_dataclass(item_tp):
-                kwargs[f.name] = [_decode_struct(v, item_tp, f"{fwhere}[{i}]") for i, v in enumerate(value)]
-            else:
-                kwargs[f.name] = [_decode_scalar(v, item_tp, f"{fwhere}[{i}]") for i, v in enumerate(value)]
-        elif dataclasses.is_dataclass(tp):
-            kwargs[f.name] = _decode_struct(value, tp, fwhere)
-        else:
-            kwargs[f.name] = _decode_scalar(value, tp, fwhere)
+            item = _decode_struct if kind == _LIST_OF_STRUCTS else _decode_scalar
+            kwargs[name] = [item(v, what, f"{fwhere}[{i}]") for i, v in enumerate(value)]
+    missing = [name for name in getattr(cls, "REQUIRED_FIELDS", ()) if name not in kwargs]
+    if missing:
+        raise MissingField(f"{where}.{missing[0]} is missing")
     out = cls(**kwargs)
     validate = getattr(out, "validate", None)
     if validate is not None:
@@ -374,12 +401,14 @@ def check_finite(where: str, value, limit: float | None = None, allow_neg_inf: b
     """Raise InvalidValue unless every element of ``value`` is finite (−inf too with ``allow_neg_inf``)
     and, with ``limit``, within ±limit."""
     a = np.asarray(value, dtype=float)
-    bad = ~np.isfinite(a)
+    if not a.size:
+        return
     if allow_neg_inf:
-        bad &= ~np.isneginf(a)
-    if bad.any():
-        raise InvalidValue(f"{where} is not finite ({a[bad].flat[0]})")
-    if limit is not None and a.size and np.nanmax(np.abs(np.where(np.isneginf(a), 0.0, a))) > limit:
+        a = np.where(a == -np.inf, 0.0, a)
+    largest = float(np.abs(a).max())      # NaN and ±inf propagate: one reduction checks every element
+    if not math.isfinite(largest):
+        raise InvalidValue(f"{where} is not finite ({a[~np.isfinite(a)].flat[0]})")
+    if limit is not None and largest > limit:
         raise InvalidValue(f"{where} is beyond ±{limit:g}")
 
 
