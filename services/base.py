@@ -27,10 +27,11 @@ def config_or_exit(cls, args: argparse.Namespace, only=None, rename=None, **extr
 
 
 @contextmanager
-def survive(node: Node, what: str, log: logging.Logger):
+def survive(node: Node, what: str, log: logging.Logger, on: str = ""):
     """Run one message's (or one cycle's) processing so that an exception costs that message only: it is
-    counted as ``step_errors`` and ``<what>_errors`` and logged (the first 5, then every 100th), and the
-    service's loop carries on. Only ``Exception``: SystemExit and KeyboardInterrupt still end the process."""
+    counted as ``step_errors`` and ``<what>_errors`` and logged (the first 5, then every 100th; ``on``
+    names the stream in the log), and the service's loop carries on. Only ``Exception``: SystemExit and
+    KeyboardInterrupt still end the process."""
     try:
         yield
     except Exception as e:  # noqa: BLE001 - a service's loop must survive any single message
@@ -38,7 +39,8 @@ def survive(node: Node, what: str, log: logging.Logger):
         node.counters.add(f"{what}_errors")
         n = node.counters.get(f"{what}_errors")
         if n <= 5 or n % 100 == 0:
-            log.warning("%s failed: %s: %s (%d so far)", what, type(e).__name__, str(e).splitlines()[0] if str(e) else "", n)
+            log.warning("%s failed%s: %s: %s (%d so far)", what, f" on {on}" if on else "", type(e).__name__,
+                        str(e).splitlines()[0] if str(e) else "", n)
 
 
 def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node, argparse.Namespace], int | None],

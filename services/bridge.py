@@ -32,7 +32,7 @@ import rerun as rr
 from common import streams as S
 from common.recording import claim_segment
 from common.viz import RerunLogger, blueprint
-from services.base import run_service, service_parser
+from services.base import run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.bridge")
 
@@ -178,19 +178,15 @@ def subscribe_all(node, inbox: Inbox, map_period_s: float):
 
 
 def log_batch(node, viz: RerunLogger, batch) -> None:
-    """Log (stream, message) pairs; a message that cannot be viewed is counted and logged, not fatal."""
+    """Log (stream, message) pairs; a message that cannot be viewed (cv2.error, a rerun error...) is
+    counted as ``view_errors`` and logged, not fatal."""
     for stream, msg in batch:
-        try:
+        with survive(node, "view", log, on=stream):
             if stream == "health":
                 viz.liveliness(*msg)
             else:
                 viz.handle(stream, msg)
             node.progress += 1
-        except Exception as e:  # noqa: BLE001 - cv2.error, rerun errors...: one message must not end the bridge
-            node.counters.add("view_errors")
-            n = node.counters.get("view_errors")
-            if n <= 5 or n % 100 == 0:
-                log.warning("cannot view a message on %s: %s (%d so far)", stream, e, n)
 
 
 def close_sinks(rec, viz: RerunLogger, web) -> None:

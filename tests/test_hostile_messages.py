@@ -120,3 +120,27 @@ def test_the_planner_survives_and_counts_the_messages_that_once_crashed_it(zenoh
             assert proc.poll() is None
     finally:
         assert stop(proc) == 0
+
+
+def test_the_bridge_counts_a_message_it_cannot_view_and_views_the_rest(caplog):
+    """A message the viewer mapping chokes on (a cv2.error once ended the bridge) costs that message only."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from common.bus import Counters
+    from services.bridge import log_batch
+
+    class Viz:
+        def __init__(self):
+            self.viewed = []
+
+        def handle(self, stream, msg):
+            if stream == "stereo/frame":
+                raise cv2.error("OpenCV(4) resize: !ssize.empty()")
+            self.viewed.append(msg)
+
+    node, viz = SimpleNamespace(counters=Counters(), progress=0), Viz()
+    log_batch(node, viz, [("slam/pose", 1), ("stereo/frame", 2), ("fusion/pose", 3)])
+    assert viz.viewed == [1, 3] and node.progress == 2 and node.counters.get("view_errors") == 1
+    assert any("view failed on stereo/frame" in r.getMessage() for r in caplog.records)
