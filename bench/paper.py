@@ -112,9 +112,11 @@ Full run at 400 generations (`--json`, 5,000 flies): the selection round picked 
 0.052° (bias x +1.5, z +6.5 mm), against 3.0 / 9.8 / 0.065° at 150 generations with ε = 0.03.  The same
 300 pairs at 400 generations with ε = 0.03 (run once afterwards, for the split, not for choosing):
 3.4 / 6.3 / 0.057°, bias z +7.3 mm: the generations give most of the gain, ε = 0.02 the rest.
-Caveat: the registration's flatness check (flat_ratio 0.02 of the stiffest curvature) calls 285 of
-those 300 minima flat at ε = 0.02 (225 at 0.03; 123 at 150 generations): z is by far the softest
-direction here, so ok=False does not mean a wrong estimate in this bench (σ and bias count them).
+
+Covariance: every headline registration's reported covariance is scored against the truth, NEES =
+mean eᵀ Σ⁻¹ e over the registrations that report one (``*_nees``, ``*_nees_ok`` for ok=True only,
+``*_nees_median``; a consistent covariance gives about 3, the degrees of freedom), with the number
+of minima the registration called flat (``*_flat``: 3σ wider than the search window somewhere).
 
 Failures: σ, bias and RMS are over *every* finite estimate; ``*_failures`` counts the ok=False among
 them, with the reasons, and ``*_ok`` keys give the statistics over ok=True only.  Equivalent
@@ -443,6 +445,30 @@ def summarise(estimates, oks, truth) -> dict:
     return out
 
 
+DOF = 3   # (x, z, θ)
+
+
+def consistency(errors, covariances, oks) -> dict:
+    """NEES (normalised estimation error squared, eᵀ Σ⁻¹ e) of estimates against the truth under the
+    covariance each registration reported: a trustworthy covariance gives a mean near DOF.
+
+    errors (n, 3) estimate − truth; covariances (n, 3, 3); oks (n,).  Counted: every finite error with a
+    finite, positive-definite covariance (flat minima report one, other failures do not), and, as
+    ``nees_ok``, those that reported ok=True.  ``nees_median`` is beside the mean (a χ²₃ has median 2.37).
+    """
+    E = np.asarray(errors, dtype=float).reshape(-1, DOF)
+    C = np.asarray(covariances, dtype=float).reshape(-1, DOF, DOF)
+    ok = np.asarray(oks, dtype=bool)
+    use = np.all(np.isfinite(E), 1) & np.all(np.isfinite(C), (1, 2))
+    use[use] &= np.all(np.linalg.eigvalsh(C[use]) > 0, 1)
+    q = np.full(len(E), np.nan)
+    q[use] = np.einsum("ni,ni->n", E[use], np.linalg.solve(C[use], E[use][..., None])[..., 0])
+    mean = lambda m: float(np.mean(q[m])) if m.any() else float("nan")  # noqa: E731
+    return dict(nees=mean(use), nees_ok=mean(use & ok),
+                nees_median=float(np.median(q[use])) if use.any() else float("nan"),
+                nees_registrations=int(use.sum()), nees_registrations_ok=int((use & ok).sum()), nees_dof=DOF)
+
+
 def worst_ratio(stats: dict, experiment: str, stat: str = "rms", suffix: str = "") -> float:
     """max over the three axes of (our error statistic / the paper's σ): below 1/3 meets the target.
     Default: the RMS error about the truth (bias included) over every finite estimate."""
@@ -450,14 +476,17 @@ def worst_ratio(stats: dict, experiment: str, stat: str = "rms", suffix: str = "
 
 
 # ------------------------------------------------------------------------------------ experiments
-def register_pairs(variant, pairs, calib, truth, label, prior=None):
-    """Register each (A, fa, B, fb) of `pairs`; return (estimates, oks, reasons, seconds)."""
+def register_pairs(variant, pairs, calib, truth, label, prior=None, covariances=None):
+    """Register each (A, fa, B, fb) of `pairs`; return (estimates, oks, reasons, seconds).  The covariance
+    each registration reports is appended to the list `covariances` when one is given."""
     est, oks, reasons = [], [], {}
     t0 = time.perf_counter()
     for n, (A, fa, B, fb) in enumerate(pairs):
         r = variant.register(A, fa, B, fb, calib, seed=n, prior=prior)
         est.append(r.params)
         oks.append(r.ok)
+        if covariances is not None:
+            covariances.append(r.covariance)
         if not r.ok:
             why = r.reason.split(":")[0]
             reasons[why] = reasons.get(why, 0) + 1
@@ -704,13 +733,16 @@ def run(args) -> dict:
     vp_pairs = experiment_pairs(vp_a, vp_b, vp_idx)
     results = {}
     for v in ([best] if best.name == PAPER_VARIANT.name else [best, PAPER_VARIANT]):
-        e_eq, ok_eq, why_eq, t_eq = register_pairs(v, eq_pairs, calib, identity, "equivalent")
-        e_vp, ok_vp, why_vp, t_vp = register_pairs(v, vp_pairs, calib, truth, "viewpoint", odo_T)
+        c_eq, c_vp = [], []
+        e_eq, ok_eq, why_eq, t_eq = register_pairs(v, eq_pairs, calib, identity, "equivalent", covariances=c_eq)
+        e_vp, ok_vp, why_vp, t_vp = register_pairs(v, vp_pairs, calib, truth, "viewpoint", odo_T, covariances=c_vp)
         results[v.name] = dict(eq=(e_eq, ok_eq), vp=(e_vp, ok_vp),
                                equivalent=dict(summarise(e_eq, ok_eq, identity), failure_reasons=why_eq,
-                                               seconds=t_eq),
+                                               seconds=t_eq, flat=why_eq.get("flat minimum", 0),
+                                               **consistency(e_eq - identity, c_eq, ok_eq)),
                                viewpoint=dict(summarise(e_vp, ok_vp, truth), failure_reasons=why_vp,
-                                              seconds=t_vp))
+                                              seconds=t_vp, flat=why_vp.get("flat minimum", 0),
+                                              **consistency(e_vp - truth, c_vp, ok_vp)))
 
     # --- does the headline lean on the odometry prior?  The odometry's z happens to be right here (its x
     # is 0.1 m off): shift the prior's z and see whether the estimate comes back to the truth.
@@ -787,6 +819,8 @@ def run(args) -> dict:
                 out[f"{prefix}{exp}_sigma_{ax}"] = s[f"sigma_{ax}"]
                 out[f"{prefix}{exp}_sigma_{ax}_ok"] = s[f"sigma_{ax}_ok"]
             out[f"{prefix}{exp}_failures"] = s["failures"]
+            for key in ("flat", "nees", "nees_ok", "nees_median", "nees_registrations", "nees_registrations_ok"):
+                out[f"{prefix}{exp}_{key}"] = s[key]
             out[f"{prefix}{exp}_registrations"] = s["registrations"]
             out[f"{prefix}{exp}_failure_reasons"] = s["failure_reasons"]
         s = r["viewpoint"]
@@ -831,6 +865,13 @@ def print_summary(out: dict) -> None:
               f"{out[prefix + 'equivalent_failures']}/{out[prefix + 'equivalent_registrations']}, viewpoint "
               f"{out[prefix + 'viewpoint_failures']}/{out[prefix + 'viewpoint_registrations']}")
     print(f"target (≥ 3× smaller σ on every axis): {'met' if out['target_3x_met'] else 'NOT met'}")
+    print(f"covariance consistency: NEES = mean eᵀΣ⁻¹e against the truth under the covariance each registration "
+          f"reports ({DOF} degrees of freedom; flat minima report one and are counted)")
+    for prefix, name in (("", "headline"), ("paper_delta_", "paper δ")):
+        print(f"  {name:9s} " + "; ".join(
+            f"{exp} NEES {out[f'{prefix}{exp}_nees']:.2f} (ok only {out[f'{prefix}{exp}_nees_ok']:.2f}, median "
+            f"{out[f'{prefix}{exp}_nees_median']:.2f}, over {out[f'{prefix}{exp}_nees_registrations']}), flat "
+            f"{out[f'{prefix}{exp}_flat']}/{out[f'{prefix}{exp}_registrations']}" for exp in ("equivalent", "viewpoint")))
     ps = out["prior_sensitivity"]
     print(f"prior sensitivity ({ps['pairs']} viewpoint pairs): prior z shifted by "
           + ", ".join(f"{s['prior_z_offset_mm']:+.0f} → mean z error {s['mean_error_z_mm']:+.1f}"

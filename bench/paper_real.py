@@ -21,7 +21,10 @@ pooled over all pairs of frames: σ is the spread of the estimates about their o
 mean (the population-to-population noise the paper's figures show), bias the mean error against the
 truth. Writes bench/out/paper_real/fig11_13_viewpoint_<k>_<k+1>.png (bench/paper.py's
 scatter panels) per pair of frames. Prints a table beside the paper's σ (19 mm, 21 mm, 0.85°); with --json the last stdout line is
-one JSON object (per variant ``sigma_*``, ``bias_*``, ``rms_*``, failures; ``paper_sigma``; ``load_avg``).
+one JSON object (per variant ``sigma_*``, ``bias_*``, ``rms_*``, failures, ``flat`` (minima reported
+flat), ``nees`` / ``nees_ok`` (mean eᵀΣ⁻¹e against the truth under the covariance each registration
+reports, 3 degrees of freedom; see bench/paper.py's ``consistency``), ``nees_about_pair_mean`` (the
+same about each frame pair's mean estimate: the seed-to-seed noise alone); ``paper_sigma``; ``load_avg``).
 """
 from __future__ import annotations
 
@@ -39,12 +42,12 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from common.fly import EvolverConfig, FlyEvolver  # noqa: E402
-from common.geometry import invert  # noqa: E402
+from common.geometry import invert, planar_pose  # noqa: E402
 from common.importers import DatasetLayoutError  # noqa: E402
 from common.importers.kitti import load_kitti  # noqa: E402
 from common.registration import PopulationError, StereoModel, register_planar  # noqa: E402
 from common.slam import FlyLocaliser  # noqa: E402
-from paper import AXES, PAPER, figure_scatter, optical_params  # noqa: E402
+from paper import AXES, DOF, PAPER, consistency, figure_scatter, optical_params  # noqa: E402
 
 PAPER_EPS = 0.1
 OPTICAL_WINDOW = (0.5, 1.5, np.deg2rad(12.0))    # x right, z forward, θ
@@ -61,7 +64,9 @@ def evolve(calib, left, right, seed: int, flies: int, generations: int, depth_ma
 
 
 class Registrations:
-    """The three ways of registering population B (frame k+1) onto A (frame k); each returns (params, ok)."""
+    """The three ways of registering population B (frame k+1) onto A (frame k); each returns (params, ok,
+    covariance of the params, flat): the curvature stage runs (curvature=True) so every estimate comes
+    with the covariance it reports, in the optical (x, z, θ) the error is measured in."""
 
     def __init__(self, calib, depth_max: float):
         self.loc = FlyLocaliser(calib.T_base_camera, calibration=calib)
@@ -74,22 +79,31 @@ class Registrations:
         b, _ = self.loc.select_flies(B, fb)
         try:
             r = register_planar(a, b, plane="body", window=BODY_WINDOW, eps=self.eps, weights_a=wa / wa.max(),
-                                stereo=self.loc.stereo, seed=seed, curvature=False)
+                                stereo=self.loc.stereo, seed=seed)
         except (PopulationError, ValueError):   # too few flies survive the selection
-            return np.full(3, np.nan), False
-        return optical_params(invert(self.C) @ r.T @ self.C), bool(r.ok)
+            return np.full(3, np.nan), False, np.full((3, 3), np.nan), False
+        J = self._body_to_optical_jacobian(r.params)
+        return (optical_params(invert(self.C) @ r.T @ self.C), bool(r.ok), J @ r.covariance @ J.T,
+                r.reason.startswith("flat"))
+
+    def _body_to_optical_jacobian(self, p, step=1e-6):
+        """d optical (x, z, θ) / d body (x, y, yaw) of the same camera motion, by central differences."""
+        if not np.all(np.isfinite(p)):
+            return np.full((3, 3), np.nan)
+        f = lambda q: optical_params(invert(self.C) @ planar_pose(*q) @ self.C)  # noqa: E731
+        return np.column_stack([(f(p + e) - f(p - e)) / (2 * step) for e in np.eye(3) * step])
 
     def stereo(self, A, fa, B, fb, seed):
         ok_a, ok_b = np.isfinite(fa), np.isfinite(fb)
         r = register_planar(A[ok_a], B[ok_b], plane="optical", window=OPTICAL_WINDOW, eps=self.eps,
                             weights_a=np.clip(fa[ok_a], 0, None) / np.nanmax(fa), stereo=self.stereo_all,
-                            seed=seed, curvature=False)
-        return np.asarray(r.params, float), bool(r.ok)
+                            seed=seed)
+        return np.asarray(r.params, float), bool(r.ok), r.covariance, r.reason.startswith("flat")
 
     def paper(self, A, fa, B, fb, seed):
         r = register_planar(A[np.isfinite(fa)], B[np.isfinite(fb)], plane="optical", window=OPTICAL_WINDOW,
                             eps=PAPER_EPS, seed=seed)
-        return np.asarray(r.params, float), bool(r.ok)
+        return np.asarray(r.params, float), bool(r.ok), r.covariance, r.reason.startswith("flat")
 
 
 def pooled(estimates: dict[int, np.ndarray], oks: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> dict:
@@ -142,6 +156,8 @@ def main(argv=None) -> int:
     variants = {"localiser": regs.localiser, "stereo_all": regs.stereo, "paper_delta": regs.paper}
     est = {v: {} for v in variants}
     oks = {v: {} for v in variants}
+    covs = {v: {} for v in variants}
+    flats = {v: {} for v in variants}
     truth, seconds = {}, {v: 0.0 for v in variants}
     t_start = time.perf_counter()
     for k in frames:
@@ -158,8 +174,10 @@ def main(argv=None) -> int:
             res = [register(*pops[0][i], *pops[1][j], seed=i * args.populations + j)
                    for i in range(args.populations) for j in range(args.populations)]
             seconds[name] += time.perf_counter() - t
-            est[name][k] = np.array([p for p, _ in res])
-            oks[name][k] = np.array([o for _, o in res])
+            est[name][k] = np.array([r[0] for r in res])
+            oks[name][k] = np.array([r[1] for r in res])
+            covs[name][k] = np.array([r[2] for r in res])
+            flats[name][k] = np.array([r[3] for r in res])
         OUT.mkdir(parents=True, exist_ok=True)
         figure_scatter(str(OUT / f"fig11_13_viewpoint_{k}_{k + 1}.png"),
                        [(name, est[name][k], oks[name][k]) for name in ("stereo_all", "paper_delta", "localiser")],
@@ -173,14 +191,28 @@ def main(argv=None) -> int:
           f"{args.populations}x{args.populations} registrations per pair, {args.generations} generations, "
           f"{args.flies} flies")
     print(f"{'variant':12s} {'σx mm':>7s} {'σz mm':>7s} {'σθ °':>6s} {'bias x':>7s} {'bias z':>7s} {'bias θ':>7s} "
-          f"{'failed':>7s} {'ms/reg':>7s}")
+          f"{'failed':>7s} {'flat':>7s} {'NEES':>6s} {'NEES ok':>7s} {'spread':>7s} {'ms/reg':>7s}")
     for name in variants:
         s = pooled(est[name], oks[name], truth)
         s["ms_per_registration"] = 1e3 * seconds[name] / max(s["registrations"], 1)
+        err = np.concatenate([est[name][k] - truth[k] for k in frames])
+        s.update(consistency(err, np.concatenate([covs[name][k] for k in frames]),
+                             np.concatenate([oks[name][k] for k in frames])))
+        s["flat"] = int(sum(flats[name][k].sum() for k in frames))
+        # the same covariances against the spread about each frame pair's own mean: the population-to-
+        # population noise they model, without the pair's bias that every seed shares
+        spread = np.concatenate([(est[name][k] - np.nanmean(est[name][k], 0))
+                                 * np.sqrt(len(est[name][k]) / max(len(est[name][k]) - 1, 1)) for k in frames])
+        s["nees_about_pair_mean"] = consistency(spread, np.concatenate([covs[name][k] for k in frames]),
+                                                np.concatenate([oks[name][k] for k in frames]))["nees"]
         out[name] = {key: (round(v, 3) if isinstance(v, float) else v) for key, v in s.items()}
         print(f"{name:12s} {s['sigma_x_mm']:7.1f} {s['sigma_z_mm']:7.1f} {s['sigma_theta_deg']:6.2f} "
               f"{s['bias_x_mm']:7.1f} {s['bias_z_mm']:7.1f} {s['bias_theta_deg']:7.2f} "
-              f"{s['failures']:3d}/{s['registrations']:<3d} {s['ms_per_registration']:7.0f}")
+              f"{s['failures']:3d}/{s['registrations']:<3d} {s['flat']:3d}/{s['registrations']:<3d} "
+              f"{s['nees']:6.2f} {s['nees_ok']:7.2f} {s['nees_about_pair_mean']:7.2f} {s['ms_per_registration']:7.0f}")
+    print(f"NEES: mean eᵀΣ⁻¹e, e = estimate − truth (x, z, θ), Σ the covariance the registration reports, over "
+          f"every estimate with one (flat minima included; 'NEES ok': ok=True only; 'spread': e about each frame "
+          f"pair's mean, the pair's bias shared by every seed removed); {DOF} degrees of freedom")
     p = PAPER["viewpoint"]
     print(f"{'paper':12s} {p[0]:7.1f} {p[1]:7.1f} {p[2]:6.2f}   (σ only; the paper reports no bias)")
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; {time.perf_counter() - t_start:.0f} s")
