@@ -239,7 +239,7 @@ class LatestSubscription:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         with self._ready:
-            self._payload = sample.payload
+            self._payload = (sample.payload, sample.attachment)
             self._ready.notify()
 
     def take(self):
@@ -247,7 +247,9 @@ class LatestSubscription:
             payload, self._payload = self._payload, None
         if payload is None:
             return None
-        msg = self._node.decode(payload.to_bytes(), self._expected, self.name)
+        data, side = payload
+        msg = self._node.decode(data.to_bytes(), self._expected, self.name,
+                                side.to_bytes() if side is not None else None)
         if msg is None:
             return None
         self.received += 1
@@ -278,7 +280,8 @@ class LatestSubscription:
 
 
 class Publisher:
-    """Typed publisher: encodes messages and stamps the envelope's seq when left at 0."""
+    """Typed publisher: encodes messages and stamps the envelope's seq when left at 0; a message's side
+    fields (``common.codec.array_field(side=True)``) go as the sample's attachment."""
 
     def __init__(self, node: "Node", key: str, latched: bool = False, reliable: bool = False):
         self._node, self.key = node, key
@@ -303,7 +306,11 @@ class Publisher:
         if msg.header.seq == 0:
             msg.header.seq = self.seq
         payload = messages.encode(msg)
-        self._pub.put(payload)
+        side = messages.encode_side(msg)
+        if side is None:
+            self._pub.put(payload)
+        else:
+            self._pub.put(payload, attachment=side)
         if self._queryable is not None:
             self._last = payload
         self._node.counters.add("published")
@@ -445,10 +452,11 @@ class Node:
         return f"{self.robot}/{stream}"
 
     # ---------------------------------------------------------------------------------- decoding
-    def decode(self, payload: bytes, expected, name: str):
-        """Decode and validate; count and log a rejected payload and return None."""
+    def decode(self, payload: bytes, expected, name: str, side: bytes | None = None):
+        """Decode and validate (``side``: the sample's attachment); count and log a rejected payload and
+        return None."""
         try:
-            msg = messages.decode(payload, expected)
+            msg = messages.decode(payload, expected, side)
         except DecodeError as e:
             self.counters.add("rejected")
             self.counters.add(f"{name}_rejected")
@@ -474,7 +482,8 @@ class Node:
         """Callback subscription (runs on a Zenoh thread). Invalid payloads are counted, not passed on.
 
         Exceptions raised by the callback are logged and counted as ``callback_errors`` so that one bad
-        message cannot kill the subscription. With ``raw=True`` the callback gets (key, bytes) unvalidated.
+        message cannot kill the subscription. With ``raw=True`` the callback gets (key, bytes) unvalidated:
+        the payload only, not the side fields that travel as its attachment (so a recording lacks them).
         """
         stream, expected = _resolve(stream, expected)
         name = stream.replace("/", "_").replace("*", "any")
@@ -485,7 +494,8 @@ class Node:
                 if raw:
                     callback(str(sample.key_expr), payload)
                     return
-                msg = self.decode(payload, expected, name)
+                side = sample.attachment
+                msg = self.decode(payload, expected, name, side.to_bytes() if side is not None else None)
                 if msg is not None:
                     callback(msg)
             except Exception as e:  # noqa: BLE001 - a service must survive any single message

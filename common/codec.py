@@ -123,9 +123,15 @@ class Array:
         raise ShapeMismatch(f"{where}: shape {arr.shape} does not match {options}")
 
 
-def array_field(dtype, shape=None, shapes=None, optional=False):
-    """Declare an array field: ``positions: np.ndarray = array_field("float32", (None, 3))``."""
-    meta = {"array": Array(dtype, shape, shapes)}
+def array_field(dtype, shape=None, shapes=None, optional=False, side=False):
+    """Declare an array field: ``positions: np.ndarray = array_field("float32", (None, 3))``.
+
+    ``side`` (optional fields only): the field is left out of :func:`encode`'s payload and travels
+    beside it, encoded by :func:`encode_side` (the bus sends it as the sample's attachment): live
+    subscribers get it, a recording of the payloads does not keep it."""
+    if side and not optional:
+        raise TypeError("a side field must be optional: a recording does not keep it")
+    meta = {"array": Array(dtype, shape, shapes)} | ({"side": True} if side else {})
     if optional:
         return field(default=None, metadata=meta)
     return field(default=None, metadata=meta | {"required": True})
@@ -170,7 +176,12 @@ _DTYPE_NAMES = {np.dtype(name): name for name in ALLOWED_DTYPES}
 
 @functools.cache
 def _field_names(cls) -> tuple[str, ...]:
-    return tuple(f.name for f in dataclasses.fields(cls) if f.name != "header")
+    return tuple(f.name for f in dataclasses.fields(cls) if f.name != "header" and not f.metadata.get("side"))
+
+
+@functools.cache
+def _side_names(cls) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("side"))
 
 
 def _encode_value(value: Any) -> Any:
@@ -199,6 +210,12 @@ def encode(msg) -> bytes:
     body.update(schema=cls.SCHEMA, major=cls.MAJOR, seq=int(h.seq), stamp_ns=int(h.stamp_ns),
                 frame_id=str(h.frame_id))
     return msgpack.packb(body, use_bin_type=True)
+
+
+def encode_side(msg) -> bytes | None:
+    """The message's side fields that are set (see :func:`array_field`) as one msgpack map, or None."""
+    side = {name: _encode_value(v) for name in _side_names(type(msg)) if (v := getattr(msg, name)) is not None}
+    return msgpack.packb(side, use_bin_type=True) if side else None
 
 
 # ------------------------------------------------------------------------------------ decoding
@@ -367,11 +384,15 @@ def _envelope_schema(obj: dict) -> tuple[str, int]:
     return name, major
 
 
-def decode(payload: bytes, expected: type | tuple[type, ...] | None = None):
-    """Parse and validate a payload. ``expected`` restricts which schema(s) are acceptable."""
+def decode(payload: bytes, expected: type | tuple[type, ...] | None = None, side: bytes | None = None):
+    """Parse and validate a payload. ``expected`` restricts which schema(s) are acceptable; ``side`` is
+    what :func:`encode_side` made of the same message (its fields are validated like the others)."""
     obj = _unpack(payload)
     name, major = _envelope_schema(obj)
     cls = SCHEMAS.get(name)
+    if side is not None and cls is not None:
+        extra = _unpack(side)
+        obj.update((k, extra[k]) for k in _side_names(cls) if k in extra)
     if cls is None:
         raise UnknownSchema(f"unknown schema {name!r}")
     if expected is not None:

@@ -19,7 +19,7 @@ from common.codec import (  # noqa: F401  (re-exported: the codec's public names
     MAX_PAYLOAD_BYTES, MAX_STAMP_NS, MAX_WORLD_M, SCHEMAS, Array, DecodeError, Envelope, InvalidValue,
     MalformedPayload, Message, MissingField, ShapeMismatch, TooLarge, UnknownSchema, UnsupportedVersion,
     WrongType, _header_field, array_field, check_finite, check_positive, check_range, decode, encode,
-    header, peek_schema, required, schema)
+    encode_side, header, peek_schema, required, schema)
 
 # ------------------------------------------------------------------------------------- schemas
 # Frame names (REP-105 tree): map -> odom -> base_link -> camera_left -> camera_left_optical, ...
@@ -157,13 +157,14 @@ class FlyPopulation(Message):
     fitness, generation count and the seq of the stereo frame they were last evaluated on.
     ``T_odom_camera`` is the camera pose in odom at that frame, when odometry was available; ``image``
     the grey left image of that frame (the flies' neighbourhoods, for photometric tracking), sent with
-    a frame's first publication only."""
+    a frame's first publication only, as a side field (beside the payload: live subscribers get it,
+    recordings do not keep it — the frame itself is recorded)."""
     positions: np.ndarray = array_field("float32", (None, 3))
     fitness: np.ndarray = array_field("float32", (None,))
     generation: int = 0
     source_seq: int = 0
     T_odom_camera: Optional[np.ndarray] = array_field("float64", (4, 4), optional=True)
-    image: Optional[np.ndarray] = array_field("uint8", (None, None), optional=True)
+    image: Optional[np.ndarray] = array_field("uint8", (None, None), optional=True, side=True)
     header: Envelope = _header_field()
 
     def validate(self) -> None:

@@ -81,3 +81,30 @@ def test_rejected_payloads_are_counted_not_raised(zenoh_port):
             raw.put(payload)
         tx.publisher("planner/target").publish(Target(x=1.0, header=header(0, 1, "map")))
         assert wait_until(lambda: len(got) == 1 and rx.counters.get("rejected") == 3, 10), rx.counters.snapshot()
+
+
+def test_a_populations_image_reaches_subscribers_beside_the_payload_and_stays_out_of_raw_payloads(zenoh_port):
+    """The grey image of a population is a side field: typed subscribers (the localiser) get it, a raw
+    subscriber (the recorder) gets the payload without it, 300 kB lighter per frame."""
+    import numpy as np
+    from common import messages as m
+    opts = BusOptions(hub=hub(zenoh_port))
+    image = np.arange(480 * 640, dtype=np.uint32).astype(np.uint8).reshape(480, 640)
+    pop = m.FlyPopulation(positions=np.ones((50, 3), np.float32), fitness=np.ones(50, np.float32), source_seq=7,
+                          image=image, header=m.header(0, 5, m.CAMERA_LEFT_OPTICAL))
+    with Node("pub", opts, handle_signals=False) as a, Node("sub", opts, handle_signals=False) as b:
+        latest = b.subscribe_latest("flies/population", m.FlyPopulation)
+        typed, raw = [], []
+        b.subscribe("flies/population", m.FlyPopulation, typed.append)
+        b.subscribe("flies/population", None, lambda key, payload: raw.append(payload), raw=True)
+        time.sleep(0.5)
+        pub = a.publisher("flies/population")
+        got = None
+        for _ in range(40):
+            pub.publish(pop)
+            got = got or latest.wait(0.25)
+            if got is not None and typed and raw:
+                break
+        assert got is not None and np.array_equal(got.image, image) and got.source_seq == 7
+        assert np.array_equal(typed[0].image, image)
+        assert len(raw[0]) < 10_000 and m.decode(raw[0]).image is None
