@@ -10,7 +10,7 @@ Prints, and with --json as one JSON object on the last line:
 - pose_latency_p50_ms / pose_latency_p99_ms: from a frame's publication to the publication of the
   localiser's pose estimate for that frame (both taken as receive times here, one clock);
 - frames_skipped_fraction: frames the evolver never worked on (its latest-value input dropped them);
-- evolver_generations_per_s, evolver_degraded_frames (frames evolved while the evolver ran degraded:
+- evolver_generations_per_s (median while frames flow), evolver_degraded_frames (frames evolved while the evolver ran degraded:
   it got less CPU than it asked for), evolver_cpu_share: from the evolver's last heartbeat;
 - peak_rss_mb: peak of the sum of all services' resident memory; rss_growth_mb: second half of the run
   minus first half (≈ 0 when memory is flat; start-up falls in the first half), rss_growth_after_warmup_mb:
@@ -131,7 +131,8 @@ def cpu_seconds(pid: int) -> float | None:
 
 
 def service_name(pid: int) -> str:
-    """'evolver' for `python -m services.evolver ...`, 'supervisor' for deploy.cli, else the program."""
+    """'evolver' for `python -m services.evolver ...`, 'supervisor' for deploy.cli and for its watchdog
+    (`python -c ...`), else the program."""
     try:
         argv = (Path("/proc") / str(pid) / "cmdline").read_bytes().split(b"\0")
     except OSError:
@@ -140,6 +141,8 @@ def service_name(pid: int) -> str:
     if "-m" in argv and argv.index("-m") + 1 < len(argv):
         module = argv[argv.index("-m") + 1]
         return "supervisor" if module == "deploy.cli" else module.rsplit(".", 1)[-1]
+    if "-c" in argv:
+        return "supervisor"
     return Path(argv[0]).name if argv else "?"
 
 
@@ -321,6 +324,7 @@ def run_once(args, out: Path, recording: Path) -> dict:
     truth_poses: list[tuple[int, np.ndarray]] = []
     frames_total = [0]
     heartbeats: dict[str, m.Heartbeat] = {}
+    generation_rates: list[tuple[int, float]] = []    # (frames seen, evolver's generations/s) per heartbeat
     lock = threading.Lock()
 
     def on_frame(key, payload):
@@ -353,6 +357,8 @@ def run_once(args, out: Path, recording: Path) -> dict:
         except m.DecodeError:
             return
         heartbeats[hb.service] = hb
+        if hb.service == "evolver" and "generations_per_s" in hb.rates:
+            generation_rates.append((frames_total[0], hb.rates["generations_per_s"]))
 
     sup = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", str(launch), "--out", str(out / "run"),
                             "--hub", hub], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -433,6 +439,7 @@ def run_once(args, out: Path, recording: Path) -> dict:
 
     lat = np.array(latencies)
     evo = heartbeats.get("evolver")
+    flowing_rates = [r for n, r in generation_rates if 0 < n < frames_total[0]]
     evolved = evo.progress if evo else 0
     frames = frames_total[0]
     rss = np.array(rss_samples)
@@ -441,7 +448,8 @@ def run_once(args, out: Path, recording: Path) -> dict:
         "pose_latency_p50_ms": round(float(np.percentile(lat, 50)), 1) if lat.size else None,
         "pose_latency_p99_ms": round(float(np.percentile(lat, 99)), 1) if lat.size else None,
         "frames_skipped_fraction": round(1 - evolved / frames, 3) if frames else None,
-        "evolver_generations_per_s": round(float(evo.rates.get("generations_per_s", 0)), 1) if evo else None,
+        # Median over the heartbeats while frames flowed (the last one comes after the run).
+        "evolver_generations_per_s": round(float(np.median(flowing_rates)), 1) if flowing_rates else None,
         "evolver_degraded_frames": int(evo.counters.get("degraded_frames", 0)) if evo else None,
         "evolver_cpu_share": evo.rates.get("cpu_share") if evo else None,
         "peak_rss_mb": round(float(rss[:, 1].max()), 1) if len(rss) else None,
