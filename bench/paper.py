@@ -116,7 +116,7 @@ Full run at 400 generations (`--json`, 5,000 flies): the selection round picked 
 Covariance: every headline registration's reported covariance is scored against the truth, NEES =
 mean eᵀ Σ⁻¹ e over the registrations that report one (``*_nees``, ``*_nees_ok`` for ok=True only,
 ``*_nees_median``; a consistent covariance gives about 3, the degrees of freedom), with the number
-of minima the registration called flat (``*_flat``: 3σ wider than the search window somewhere).
+of minima the registration called flat (``*_flat``: one σ reaches past the search window somewhere).
 
 Failures: σ, bias and RMS are over *every* finite estimate; ``*_failures`` counts the ok=False among
 them, with the reasons, and ``*_ok`` keys give the statistics over ok=True only.  Equivalent

@@ -87,7 +87,7 @@ def test_plane_sliding_along_itself_is_reported_flat():
     res = register_planar(A, B, plane="optical")
     assert not res.ok
     assert "flat" in res.reason or "boundary" in res.reason
-    assert res.flatness < 1.0          # 3σ along the ground wider than the search window
+    assert res.flatness < 1.0          # σ along the ground wider than the search window
 
 
 @pytest.mark.parametrize("A,B,word", [

@@ -5,9 +5,9 @@ definite, from second differences of the values (_value_hessian: a cusp minimum 
 not).  The covariance is a cluster-robust sandwich (_clustered_meat): A's flies are grouped into cells
 as wide as the kernel's core, 2 (ε + the flies' median spacing), because flies that close read the
 same few B flies and so share B's sampling error; the per-cell sums of the centred per-fly gradients
-are the independent terms.  Flatness is how well the minimum is pinned inside the search window: one
-over three standard deviations along the worst direction, in units of the window's half-widths
-(< 1: the 3σ interval is wider than the window, the data do not place the minimum).  stiffness_ratio
+are the independent terms.  Flatness is how well the minimum is pinned inside the search window: the
+window's half-width over the standard deviation along the worst direction, both in window units
+(< 1: one σ reaches past the window, the data do not place the minimum).  stiffness_ratio
 keeps the old curvature ratio (H's smallest over its stiffest eigenvalue, rotations as metres of arc)
 as a diagnostic.  Design: docs/design/registration.md.
 """
@@ -30,7 +30,7 @@ class _Curvature:
     Jf: np.ndarray         # per-fly gradients, centred
     evaluations: int
     covariance: np.ndarray | None = None   # clustered sandwich (params²); None when H is not invertible
-    flatness: float = float("nan")         # 1 / (3σ along the worst direction, window units)
+    flatness: float = float("nan")         # 1 / σ along the worst direction, window units
 
 
 def _curvature(mode, k, full, pose, p_best, rc, radius, half) -> _Curvature:
@@ -119,7 +119,7 @@ def _clustered_meat(A, Jf, eps, B):
 
 
 def _flatness(cov, half):
-    """1 / (3σ_max), σ_max the largest standard deviation of the free parameters in units of the window's
+    """1 / σ_max, σ_max the largest standard deviation of the free parameters in units of the window's
     half-widths: below 1 the minimum is not pinned down inside the window along some direction."""
     free = np.asarray(half) > 0
     if not free.any():
@@ -127,7 +127,7 @@ def _flatness(cov, half):
     h = np.asarray(half, dtype=float)[free]
     cu = cov[np.ix_(free, free)] / np.outer(h, h)
     worst = float(np.linalg.eigvalsh(cu)[-1])
-    return float(1.0 / (3.0 * np.sqrt(worst))) if worst > 0 else float("inf")
+    return float(1.0 / np.sqrt(worst)) if worst > 0 else float("inf")
 
 
 def _value_hessian(fun, p, fd):

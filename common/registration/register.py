@@ -11,8 +11,8 @@ the best two on the full objective (see docs/design/registration.md for the desi
 
 Invariants: the result stays inside prior ± window; ``res.covariance`` is the clustered sandwich
 estimate in params² (curvature.py), also on a flat minimum (ok False, large along the flat direction),
-NaN with ``curvature=False`` or on any other failure; a minimum is flat when 3σ along some direction is
-wider than the window (``res.flatness`` < ``flat_ratio`` = 1); well-formed but unusable input — too
+NaN with ``curvature=False`` or on any other failure; a minimum is flat when one σ along some direction
+reaches past the window (``res.flatness`` < ``flat_ratio`` = 1); well-formed but unusable input — too
 few flies, a minimum on the window's edge, not a minimum, a flat or ambiguous minimum — gives
 ``res.ok`` False with ``res.reason`` and never raises; malformed input (wrong shapes, NaN, a non-rigid
 prior) raises PopulationError.
@@ -51,7 +51,7 @@ class RegistrationResult:
     reason: str = ""
     mode: str = ""
     hessian: np.ndarray | None = None
-    flatness: float = float("nan")     # 1/(3σ) along the worst direction, window units (< 1: flat)
+    flatness: float = float("nan")     # 1/σ along the worst direction, window units (< 1: flat)
     ambiguity: float = float("nan")    # depth of the 2nd minimum relative to the best's (1 = as deep)
     evaluations: int = 0
     timings: dict = dc_field(default_factory=dict)
@@ -227,7 +227,7 @@ def _register(mode, A, B, eps, prior, window, weights_a, weights_b, lattice_coun
         v = np.linalg.eigh(curv.covariance / np.outer(scale, scale))[1][:, -1]
         return RegistrationResult(
             covariance=curv.covariance, ok=False, **common,
-            reason=f"flat minimum: 3σ along {np.round(v, 2).tolist()} (window units) is "
+            reason=f"flat minimum: σ along {np.round(v, 2).tolist()} (window units) is "
                    f"{1 / curv.flatness:.2g}× the window's half-width (threshold flatness {flat_ratio})")
     if np.isfinite(ambiguity) and ambiguity > ambiguity_ratio:
         return _fail(reason=f"ambiguous: a second minimum at {np.round(refined[1][0], 3).tolist()} is "
