@@ -16,7 +16,10 @@ Global search, no I/O (LocaliserCore runs it while it is "relocalising"):
    the answer, the window closed), so that answers found from different guesses compare;
 3. accept only a clear, confirmed answer: the best registration (lowest δ) must be an interior,
    unambiguous minimum; no other answer (farther than ``agree_m`` / ``agree_rad``) may come within
-   ``rival_margin`` × |δ| of it, nor may a registration that stopped on its window's edge be better;
+   ``rival_margin`` × |δ| of it, nor may a registration that stopped on its window's edge be better,
+   nor the best itself moved ``pin_check_m`` forwards or back (walls alone do not pin the position
+   along the view, and far structure pins it loosely: δ then has a flat valley or a second basin
+   there, and an answer 0.7 m off wins as often as the right one);
    and the same pose must win ``confirmations`` + 1 searches in a row — the previous search's best
    answer, carried to this frame by odometry, is searched from as one more guess and the new best
    must agree with it (a hint agreeing confirms at once).  A corridor looks alike along its length:
@@ -49,8 +52,6 @@ class RelocaliserConfig:
     reach_m: float = 12.0                # map points this near a guess (and not behind it) are registered against
     voxel_m: float = 0.04                # the merged map is thinned to one point per voxel
     map_points: int = 8000               # ... and each guess's part of it subsampled to this many
-    near_radius_m: float = 3.0           # keyframes this near a hinted pose (and ...
-    near_max_angle_rad: float = np.deg2rad(45.0)   # ... looking within this of its way) see it
     window: tuple = (1.0, 0.5, np.deg2rad(15.0))    # δ half-widths around a keyframe's pose
     hint_window: tuple = (0.6, 0.6, np.deg2rad(12.0))   # ... around a hinted pose (a restart)
     hint_frames: int = 10                # searches near a hint before the whole map is searched
@@ -64,6 +65,7 @@ class RelocaliserConfig:
     agree_m: float = 0.15                # two answers this near ...
     agree_rad: float = np.deg2rad(2.0)   # ... and this aligned are the same pose
     rival_margin: float = 0.15           # an answer elsewhere must be worse than the best by this × |δ|
+    pin_check_m: float = 0.6             # the best must also beat itself moved this far along its view
     confirmations: int = 2               # ... and the same pose must win this many more searches in a row
     min_generations: int = 250           # younger populations are not searched with (see the module doc)
     confirm_gap_s: float = 0.5           # without odometry, the previous answer confirms only this soon after
@@ -162,16 +164,10 @@ class Relocaliser:
         return [Candidate(self.keyframes[k].id, float(scores[k]), self.keyframes[k].T_map_base.copy()) for k in best]
 
     def near(self, T_hint: np.ndarray) -> list[Candidate]:
-        """Keyframes around a hinted pose, nearest first, each guessing the hint itself."""
-        x, y, yaw = planar_from_transform(T_hint)
-        cands = []
-        for kf in self.keyframes:
-            kx, ky, kyaw = planar_from_transform(kf.T_map_base)
-            d = float(np.hypot(x - kx, y - ky))
-            if d < self.config.near_radius_m and abs(wrap_angle(yaw - kyaw)) < self.config.near_max_angle_rad:
-                cands.append((d, kf))
-        cands.sort(key=lambda dk: dk[0])
-        return [Candidate(kf.id, -d, np.asarray(T_hint, float).copy()) for d, kf in cands]
+        """The keyframe nearest to a hinted pose (within ``reach_m``), guessing the hint itself."""
+        d = [float(np.hypot(*(kf.T_map_base[:2, 3] - T_hint[:2, 3]))) for kf in self.keyframes]
+        k = int(np.argmin(d))
+        return [Candidate(self.keyframes[k].id, -d[k], np.asarray(T_hint, float).copy())] if d[k] < self.config.reach_m else []
 
     # ------------------------------------------------------------------------------ registering
     def _search_map(self, guesses: list[np.ndarray]) -> np.ndarray:
@@ -229,9 +225,9 @@ class Relocaliser:
         if len(points) < c.min_flies:
             return Relocalisation(None, f"{len(points)} usable flies (< {c.min_flies})")
         if hint is not None:
-            if not self.near(hint):
-                return Relocalisation(None, "no keyframe of the map sees the hinted pose")
-            cands, window = self.near(hint)[:1], c.hint_window
+            cands, window = self.near(hint), c.hint_window
+            if not cands:
+                return Relocalisation(None, f"the hinted pose is farther than {c.reach_m} m from the map")
         else:
             cands, window = self.rank(points, fitness), c.window
         if previous is not None:
@@ -266,6 +262,10 @@ class Relocaliser:
                 return Relocalisation(None, f"ambiguous: two poses {_distance(r.T_map_base, best.T_map_base):.2f} m "
                                             f"apart fit nearly as well", best.keyframe_id, best.delta, cands,
                                       best.T_map_base.copy())
+        for dx in (-c.pin_check_m, c.pin_check_m):      # pinned along the line of sight?
+            if self._score(points, fitness, B_map, best.T_map_base @ planar_pose(dx, 0.0, 0.0)) - best.delta < margin:
+                return Relocalisation(None, f"not pinned along the view: {dx:+.1f} m fits nearly as well",
+                                      best.keyframe_id, best.delta, cands, best.T_map_base.copy())
         agrees = previous is not None and _agree(previous, best.T_map_base, c)
         streak = streak + 1 if agrees else 0
         out = Relocalisation(None, "", best.keyframe_id, best.delta, cands, best.T_map_base.copy(), streak)
