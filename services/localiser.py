@@ -2,26 +2,38 @@
 
 Takes ``flies/population`` (latest value), the odometry pose ``fusion/odom`` as prior and the latched
 ``stereo/calibration``; publishes ``slam/pose`` (base_link in map with covariance; the status says when
-a registration was rejected and odometry carried on) and ``slam/map_to_odom`` (REP-105), answers the
-queryable ``slam/map`` and writes the trajectory as TUM text (``--tum``) and the map as ``map.mcap`` next to it
-(every ``map_period_s`` and on exit, atomically); ``--map FILE`` starts from a saved map. The state machine is
+a registration was rejected and odometry carried on, or that it is still relocalising) and
+``slam/map_to_odom`` (REP-105), answers the queryable ``slam/map`` and writes the trajectory as TUM text
+(``--tum``) and the map as ``map.mcap`` next to it (atomically, every ``map_period_s`` when it changed, and
+on exit); ``--map FILE`` starts from a saved map, relocalising in it. The state machine is
 :class:`common.slam.core.LocaliserCore`, the same one ``flyslam eval`` runs.
+
+Restarts (the supervisor restarts a killed localiser with the same flags) lose nothing: the ``--tum``
+file is never overwritten — the poses it already holds are kept ahead of this run's, each new pose is
+appended as it is published and the whole file is rewritten atomically every ``tum_period_s`` with
+the back-end's (optimised) trajectory.  A ``map.mcap`` already in the run folder is the one the killed
+run saved: it is loaded (in preference to ``--map``) and the localiser relocalises in it, near the
+``slam/map_to_odom`` the bus still latches (the supervisor holds it), so poses resume at once.
 """
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from common import messages as m
 from common import streams as S
 from common.config_args import add_config_arguments
 from common.slam import LocaliserConfig
+from common.slam.backend import ArchiveConfig
 from common.slam.core import LocaliserCore, LocaliserOutput, LocaliserServiceConfig
 from common.slam.mapfile import MapFileError, load_map
-from common.trajectory import write_tum
+from common.trajectory import TrajectoryFormatError, format_tum, parse_tum
 from services.base import config_or_exit, run_service, service_parser
 
 log = logging.getLogger("flyslam.localiser")
@@ -32,6 +44,7 @@ RENAME = {"max_depth_m": "max-depth"}
 def build_parser():
     p = service_parser("localiser", __doc__.splitlines()[0])
     add_config_arguments(p, LocaliserServiceConfig)
+    add_config_arguments(p, ArchiveConfig, only=["max_archive_keyframes"])
     add_config_arguments(p, LocaliserConfig, only=LOCALISER_FLAGS, rename=RENAME, helps={
         "max_keyframes": "keyframes kept in the map (oldest dropped)",
         "max_depth_m": "flies farther than this (m, camera depth) are not used (default: 0.3 f B)",
@@ -39,19 +52,92 @@ def build_parser():
     return p
 
 
+class TrajectoryFile:
+    """The ``--tum`` file of a run that may be restarted: what it holds is kept (a last line cut by a
+    kill is dropped; an unreadable file is moved aside to ``<name>.unreadable``, never lost), new poses
+    are appended one line at a time as they are published, and :meth:`rewrite` replaces the file
+    atomically with the kept poses older than this run followed by this run's trajectory."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.kept_stamps, self.kept_poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        self._fh = None
+        if not self.path.exists():
+            return
+        try:
+            text = self.path.read_text()
+            if text and not text.endswith("\n"):
+                text = text[: text.rfind("\n") + 1]          # a line cut short by a kill
+            self.kept_stamps, self.kept_poses = parse_tum(text, str(self.path))
+        except (OSError, UnicodeDecodeError, TrajectoryFormatError) as e:
+            aside = self.path.with_name(self.path.name + ".unreadable")
+            os.replace(self.path, aside)
+            log.warning("%s is unreadable (%s): moved to %s, starting a new one", self.path, e, aside.name)
+            return
+        if len(self.kept_stamps):
+            log.info("continuing %s: %d poses kept", self.path, len(self.kept_stamps))
+
+    def append(self, stamp_ns: int, T_map_base: np.ndarray) -> None:
+        if self._fh is None:
+            self._fh = open(self.path, "a")
+        self._fh.write(format_tum(np.array([stamp_ns], np.int64), T_map_base[None]))
+        self._fh.flush()
+
+    def rewrite(self, stamps: np.ndarray, poses: np.ndarray) -> int:
+        """The kept poses before ``stamps[0]`` and then ``stamps``/``poses``, atomically; the pose count."""
+        older = self.kept_stamps < stamps[0] if len(stamps) else np.ones(len(self.kept_stamps), bool)
+        all_stamps = np.concatenate([self.kept_stamps[older], np.asarray(stamps, np.int64)])
+        all_poses = np.concatenate([self.kept_poses[older], np.asarray(poses, float).reshape(-1, 4, 4)])
+        self.close()
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.write_text(format_tum(all_stamps, all_poses))
+        os.replace(tmp, self.path)
+        return len(all_stamps)
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def starting_map(run: LocaliserServiceConfig, map_path: Path | None):
+    """(map data or None, restarted): the run folder's map.mcap (a restart) before ``--map``; raises
+    MapFileError for a bad ``--map`` (a bad run-folder map is logged and ignored: the run goes on)."""
+    if map_path is not None and map_path.exists():
+        try:
+            data = load_map(map_path)
+            log.info("restart: continuing the run's map %s (%d keyframes)", map_path, len(data.keyframes))
+            return data, True
+        except MapFileError as e:
+            log.warning("restart: %s; not using it", e)
+    if run.map:
+        data = load_map(run.map)
+        log.info("starting from %s: %d keyframes, %d edges", run.map, len(data.keyframes), len(data.edges))
+        return data, False
+    return None, False
+
+
 def body(node, args) -> int:
     run = config_or_exit(LocaliserServiceConfig, args)
-    initial_map = None
-    if run.map:
-        try:
-            initial_map = load_map(run.map)
-        except MapFileError as e:
-            log.error("%s", e)
-            return 2
-        log.info("starting from %s: %d keyframes, %d edges", run.map, len(initial_map.keyframes), len(initial_map.edges))
-    core = LocaliserCore(config_or_exit(LocaliserConfig, args, only=LOCALISER_FLAGS, rename=RENAME), seed=run.seed,
-                         initial_map=initial_map)
     map_path = Path(run.tum).parent / "map.mcap" if run.tum else None
+    try:
+        initial_map, restarted = starting_map(run, map_path)
+    except MapFileError as e:
+        log.error("%s", e)
+        return 2
+    hint = None
+    if restarted:    # where odom was in the map when the run was killed (held by the supervisor)
+        for _ in range(3):      # (a query sent before the session has joined the bus finds nobody)
+            latched = node.query_latest(S.SLAM_MAP_TO_ODOM, timeout=0.3)
+            if latched is not None:
+                break
+            time.sleep(0.1)
+        hint = m.transform_of(latched) if latched is not None else None
+        log.info("restart: relocalising %s", "near the latched map->odom" if hint is not None else "in the whole map")
+    core = LocaliserCore(config_or_exit(LocaliserConfig, args, only=LOCALISER_FLAGS, rename=RENAME), seed=run.seed,
+                         initial_map=initial_map, hint_map_to_odom=hint,
+                         archive=config_or_exit(ArchiveConfig, args, only=["max_archive_keyframes"]))
+    tum = TrajectoryFile(run.tum) if run.tum else None
     lock = threading.Lock()
 
     def on_odom(msg: m.PoseEstimate) -> None:
@@ -68,6 +154,7 @@ def body(node, args) -> int:
     populations = node.subscribe_latest(S.FLIES_POPULATION)
     pubs = node.publisher(S.SLAM_POSE), node.publisher(S.SLAM_MAP_TO_ODOM)
     last_tum = last_map = time.monotonic()
+    map_changed = False
     while not node.stopping:
         pop = populations.wait(timeout=0.5)
         if pop is None:
@@ -78,16 +165,21 @@ def body(node, args) -> int:
             out = core.on_population(pop)
         publish(node, out, pop, *pubs)
         node.rates["keyframes"] = float(len(core.keyframes))
-        if run.tum and time.monotonic() - last_tum > run.tum_period_s:
-            write_tum(run.tum, *core.trajectory())
+        if out.estimate is not None:
+            map_changed |= out.estimate.keyframe_added
+            if tum is not None:
+                tum.append(out.pose.header.stamp_ns, out.estimate.T_map_base)
+        if tum is not None and time.monotonic() - last_tum > run.tum_period_s:
+            with lock:
+                tum.rewrite(*core.trajectory())
             last_tum = time.monotonic()
-        if map_path is not None and time.monotonic() - last_map > run.map_period_s:
+        if map_path is not None and map_changed and time.monotonic() - last_map > run.map_period_s:
             with lock:
                 save_map_logged(core, map_path, quiet=True)
-            last_map = time.monotonic()
-    if run.tum and core.localised:
-        write_tum(run.tum, *core.trajectory())
-        log.info("wrote %d poses to %s", core.localised, run.tum)
+            last_map, map_changed = time.monotonic(), False
+    if tum is not None:
+        total = tum.rewrite(*core.trajectory())
+        log.info("wrote %d poses to %s (%d of this run)", total, run.tum, core.localised)
     if map_path is not None:
         save_map_logged(core, map_path)
     return 0
@@ -103,7 +195,12 @@ def save_map_logged(core: LocaliserCore, path: Path, quiet: bool = False) -> Non
 
 
 def publish(node, out: LocaliserOutput, pop: m.FlyPopulation, pose_pub, tf_pub) -> None:
-    """Publish a localised population's pose and map→odom; count and log a refused one."""
+    """Publish a localised population's pose and map→odom (while relocalising: the pose only, with
+    its status); count and log a refused one."""
+    if out.estimate is None and out.pose is not None:
+        node.counters.add("relocalising")
+        pose_pub.publish(out.pose)
+        return
     if out.estimate is None:
         if out.reason != "republished":
             node.counters.add("populations_without_calibration" if out.reason == "no calibration"

@@ -2,9 +2,11 @@
 keyframes joined by an odometry factor, the registrations that made a keyframe by registration factors,
 and loop closures (a new keyframe registered against an old one near it) by robust loop factors.
 
-Invariants: every keyframe the localiser ever made stays in ``archive`` (the sliding window only bounds
-the local map); after :meth:`KeyframeGraph.optimise` every archived keyframe's ``T_map_base`` and
-``points_map`` are the graph's.  Factors (flyslam order, frame j, see posegraph):
+Invariants: the keyframes the localiser made stay in ``archive`` (the sliding window only bounds the
+local map) up to ``ArchiveConfig.max_archive_keyframes``: past it, :meth:`KeyframeGraph.bound` drops the
+most redundant old ones and rebuilds the graph without them, so memory stays bounded on a long run (and
+so does map.mcap, which saves the archive); after :meth:`KeyframeGraph.optimise` every archived
+keyframe's ``T_map_base`` and ``points_map`` are the graph's.  Factors (flyslam order, frame j, see posegraph):
 
 - odometry i→j: the relative pose the localiser estimated, σ growing with the distance driven and the
   angle turned between them (the same model as the localiser's odometry prior);
@@ -14,7 +16,7 @@ the local map); after :meth:`KeyframeGraph.optimise` every archived keyframe's `
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,6 +35,24 @@ class LoopClosure:
     reason: str = ""
 
 
+@dataclass
+class ArchiveConfig:
+    """The back-end's hard size bound.  500 keyframes hold ~20 MB of flies (~1,200 points each, points,
+    map-frame copy and fitness: ~28 bytes a point) and, at keyframe_distance_m = 1.5 m, 750 m of distinct
+    path; a robot that comes back to a place adds keyframes there again (the local map is chosen from
+    the sliding window), so a long run reaches the bound however small its world is."""
+    max_archive_keyframes: int = field(default=500, metadata={
+        "help": "keyframes the map keeps at most (past it the most redundant old ones are dropped)"})
+    drop_fraction: float = field(default=0.1, metadata={
+        "help": "share of the bound dropped at once when it is reached (the graph is rebuilt once for them)"})
+
+    def __post_init__(self):
+        if int(self.max_archive_keyframes) < 1:
+            raise ValueError(f"max_archive_keyframes must be at least 1, got {self.max_archive_keyframes}")
+        if not 0.0 <= float(self.drop_fraction) < 1.0:
+            raise ValueError(f"drop_fraction must be in [0, 1), got {self.drop_fraction}")
+
+
 def odometry_sigmas(config, distance_m: float, turned_rad: float) -> tuple[float, float]:
     """σ (m, rad) of odometry over ``distance_m`` driven and ``turned_rad`` turned (LocaliserConfig's
     prior_sigma_* model): the localiser's prior since its last fix and the graph's odometry factors."""
@@ -44,12 +64,14 @@ def odometry_sigmas(config, distance_m: float, turned_rad: float) -> tuple[float
 class KeyframeGraph:
     """Pose graph over the localiser's keyframes.  ``planar``: a wheeled robot (z, roll, pitch held)."""
 
-    def __init__(self, config, planar: bool):
+    def __init__(self, config, planar: bool, archive: ArchiveConfig | None = None):
         self.config = config
         self.planar = planar
+        self.archive_config = archive or ArchiveConfig()
         self.graph = PoseGraph(robust="cauchy", planar=planar)
-        self.archive: dict = {}            # id -> Keyframe, every keyframe made
+        self.archive: dict = {}            # id -> Keyframe, the keyframes kept (see ArchiveConfig)
         self.loops: list[LoopClosure] = []
+        self.dropped = 0                   # keyframes dropped by the size bound
         self._last_id: int | None = None
 
     # --------------------------------------------------------------------------- factors
@@ -125,6 +147,65 @@ class KeyframeGraph:
         C = self.archive[newest_id].T_map_base @ invert(before)
         return np.eye(4) if np.allclose(C, np.eye(4), atol=1e-7) else C
 
+    # ----------------------------------------------------------------------------- the bound
+    def bound(self, keep: set[int] = frozenset()) -> list[int]:
+        """Enforce ``max_archive_keyframes``: once it is exceeded drop ``drop_fraction`` of it (never the
+        ids in ``keep``, the localiser's window, nor the newest keyframe) and return their ids.
+
+        Least useful first: a keyframe with a younger twin (another within ``keyframe_distance_m`` and
+        ``keyframe_angle_rad``: the same view mapped again) before the oldest.  The graph is rebuilt on
+        the kept keyframes at their current poses with the edges among them; consecutive kept keyframes
+        that lost their link are joined by an odometry factor of their current relative pose (the
+        chain stays connected), and the oldest kept one takes the prior when its holder was dropped.
+        A dropped keyframe's flies are released (an estimate anchored on it keeps only its pose)."""
+        limit = int(self.archive_config.max_archive_keyframes)
+        if len(self.archive) <= limit:
+            return []
+        n_drop = len(self.archive) - limit + int(self.archive_config.drop_fraction * limit)
+        protected = set(keep) | {self._last_id}
+        ids = sorted(k for k in self.archive if k not in protected)
+        n_drop = min(n_drop, len(ids))
+        poses = np.array([planar_from_transform(self.archive[k].T_map_base) for k in ids]).reshape(-1, 3)
+        young = np.array([planar_from_transform(self.archive[k].T_map_base) for k in self.archive]).reshape(-1, 3)
+        young_ids = np.array(list(self.archive))
+        twin = np.zeros(len(ids), bool)
+        for n, (k, (x, y, yaw)) in enumerate(zip(ids, poses)):
+            near = (np.hypot(young[:, 0] - x, young[:, 1] - y) < self.config.keyframe_distance_m) & (
+                np.abs((young[:, 2] - yaw + np.pi) % (2 * np.pi) - np.pi) < self.config.keyframe_angle_rad)
+            twin[n] = bool(np.any(near & (young_ids > k)))
+        order = sorted(range(len(ids)), key=lambda n: (not twin[n], ids[n]))
+        drop = sorted(ids[n] for n in order[:n_drop])
+        self._rebuild(set(drop))
+        return drop
+
+    def _rebuild(self, drop: set[int]) -> None:
+        kept = sorted(k for k in self.archive if k not in drop)
+        old_edges = list(self.graph.edges().values())
+        graph = PoseGraph(robust="cauchy", planar=self.planar)
+        for k in kept:
+            graph.add_keyframe(k, orthonormalised(self.archive[k].T_map_base))
+        linked = set()
+        has_prior = False
+        for e in old_edges:
+            if e.i in drop or e.j in drop:
+                continue
+            graph.add_edge(e)
+            has_prior |= e.kind == "prior"
+            linked.add((min(e.i, e.j), max(e.i, e.j)))
+        for a, b in zip(kept[:-1], kept[1:]):
+            if (a, b) not in linked:
+                T = orthonormalised(invert(self.archive[a].T_map_base) @ self.archive[b].T_map_base)
+                graph.add_odometry(a, b, T, self._odometry_cov(T))
+        if not has_prior and kept:
+            graph.add_prior(kept[0], orthonormalised(self.archive[kept[0]].T_map_base),
+                            np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
+        for k in drop:
+            kf = self.archive.pop(k)
+            kf.points, kf.points_map = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+            kf.fitness = np.zeros(0, np.float32)
+        self.graph = graph        # optimised with the next keyframe (whose correction the localiser applies)
+        self.dropped += len(drop)
+
     def drop_if_outvoted(self, handle: int) -> bool:
         """Remove a factor the optimised graph down-weighted (an outlier); True if it was removed."""
         if self.graph.report(handle).downweighted:
@@ -133,4 +214,4 @@ class KeyframeGraph:
         return False
 
 
-__all__ = ["KeyframeGraph", "LoopClosure", "PoseGraphError"]
+__all__ = ["ArchiveConfig", "KeyframeGraph", "LoopClosure", "PoseGraphError"]

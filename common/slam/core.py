@@ -34,6 +34,7 @@ from common import messages as m
 from common.geometry import invert, pose_from_transform
 from common.core_inputs import LatchedInputs
 from common.pose_buffer import PoseBuffer
+from common.slam.backend import ArchiveConfig
 from common.slam.localiser import Estimate, FlyLocaliser, LocaliserConfig, LocaliserError
 from common.slam.mapfile import FlyMapData, save_map
 from common.slam.relocalise import Relocalisation, Relocaliser, RelocaliserConfig
@@ -45,13 +46,13 @@ UNKNOWN_COVARIANCE = np.eye(6) * 1e4    # a relocalising pose says nothing
 class LocaliserServiceConfig:
     """The live localiser's settings outside :class:`LocaliserConfig`."""
     tum: str | None = field(default=None, metadata={
-        "help": "write the estimated trajectory (TUM) here, every tum_period_s and on exit"})
-    tum_period_s: float = field(default=5.0, metadata={"help": "seconds between TUM rewrites"})
+        "help": "append each pose to this TUM file (kept across restarts), rewritten optimised every tum_period_s"})
+    tum_period_s: float = field(default=5.0, metadata={"help": "seconds between atomic rewrites of --tum"})
     seed: int = field(default=0, metadata={"help": "random seed of the localiser"})
     map: str | None = field(default=None, metadata={
         "help": "start from this saved map (map.mcap of an earlier run)"})
-    map_period_s: float = field(default=10.0, metadata={
-        "help": "seconds between rewrites of map.mcap (written next to --tum, and on exit)"})
+    map_period_s: float = field(default=2.0, metadata={
+        "help": "seconds between rewrites of map.mcap next to --tum once it changed (and on exit)"})
 
 
 @dataclass
@@ -65,12 +66,14 @@ class LocaliserOutput:
 class LocaliserCore(LatchedInputs):
     def __init__(self, config: LocaliserConfig | None = None, seed: int = 0, odometry: PoseBuffer | None = None,
                  initial_map: FlyMapData | None = None, relocaliser: RelocaliserConfig | None = None,
-                 hint_map_to_odom: np.ndarray | None = None):
+                 hint_map_to_odom: np.ndarray | None = None, archive: ArchiveConfig | None = None):
         """``initial_map``: a saved map (common.slam.mapfile.load_map) the localiser starts from, at an
-        unknown pose (relocalising); ``hint_map_to_odom``: where a restart believes odom is in the map."""
+        unknown pose (relocalising); ``hint_map_to_odom``: where a restart believes odom is in the map;
+        ``archive``: the map's size bound (common.slam.backend.ArchiveConfig)."""
         self.config = config or LocaliserConfig()
         self.initial_map = initial_map
         self.seed = seed
+        self.archive_config = archive or ArchiveConfig()
         super().__init__(odometry if odometry is not None else PoseBuffer(maxlen=1000))
         self.localiser: FlyLocaliser | None = None
         self._last_source_seq: int | None = None
@@ -98,8 +101,11 @@ class LocaliserCore(LatchedInputs):
             cmsg = self._calibration_msg
             self.localiser = FlyLocaliser(cmsg.T_base_camera, self.config, seed=self.seed,
                                           calibration=m.calibration_from_msg(cmsg))
+            if self.localiser.backend is not None:
+                self.localiser.backend.archive_config = self.archive_config
             if self.initial_map is not None:
                 self.localiser.load_map(self.initial_map)
+                self._bound_map()
         loc = self.localiser
         stamp = pop.header.stamp_ns
         if pop.T_odom_camera is not None:
@@ -114,6 +120,8 @@ class LocaliserCore(LatchedInputs):
             est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, image=pop.image)
         except LocaliserError as e:
             return LocaliserOutput(reason=f"bad population: {e}")
+        if est.keyframe_added:
+            self._bound_map()
         p, q = pose_from_transform(est.T_map_odom)
         self.localised += 1
         return LocaliserOutput(
@@ -122,6 +130,12 @@ class LocaliserCore(LatchedInputs):
             map_to_odom=m.TransformMsg(child_frame_id=m.ODOM, translation=p, rotation=q,
                                        header=m.header(0, stamp, m.MAP)),
             estimate=est)
+
+    def _bound_map(self) -> None:
+        """Hold the back-end's archive to ``archive.max_archive_keyframes`` (the window is kept)."""
+        loc = self.localiser
+        if loc.backend is not None:
+            loc.backend.bound(keep={kf.id for kf in loc.keyframes})
 
     def _relocalise(self, pop: m.FlyPopulation, T_odom_base: np.ndarray | None) -> LocaliserOutput | None:
         """One relocalisation step: None once found (the localiser restarted there), else the

@@ -1,0 +1,114 @@
+"""A localiser killed with SIGKILL and started again keeps every pose it had written, picks up the map
+it saved in the run folder and, near the map->odom the bus still latches, publishes poses again at
+once and in the right place."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from common import messages as m
+from common.bus import BusOptions, Node
+from common.geometry import planar_pose
+from common.trajectory import read_tum
+from tests.helpers import hub, start_module, stop, wait_until
+from tests.test_relocalise import CALIB, corridor, population
+
+
+def hold_latched(node: Node, stream: str):
+    """What the supervisor does for its launch file's ``latch`` streams: keep the newest payload of
+    ``stream`` and answer queries with it, whoever published it."""
+    last: list[bytes | None] = [None]
+    key = node.key(stream)
+    node.session.declare_subscriber(key, lambda sample: last.__setitem__(0, sample.payload.to_bytes()))
+
+    def on_query(query: zenoh.Query) -> None:
+        if last[0] is not None:
+            query.reply(key, last[0])
+    node.session.declare_queryable(key, on_query)
+
+
+def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp_path, zenoh_port):
+    tum, saved = tmp_path / "estimated.tum", tmp_path / "map.mcap"
+    args = ("--tum", str(tum), "--map-period-s", "0.3", "--tum-period-s", "0.5")
+    rng = np.random.default_rng(3)
+    world = corridor(rng)
+    poses, lock = [], threading.Lock()
+    step, seq = [0], [0]
+    odom_offset = planar_pose(5.0, 2.0, 0.3)
+    where = {}              # seq -> step: where the robot was
+
+    def truth(k):
+        return planar_pose(1.0 + 0.1 * k, 0.05, 0.02)
+
+    def feed(pops, advance=True):
+        k = step[0]
+        seq[0] += 1
+        where[seq[0]] = k
+        pops.publish(population(truth(k), world, rng, seq[0], 10**9 + seq[0] * 10**8,
+                                odom_offset @ planar_pose(0.1 * k, 0.0, 0.0)))
+        step[0] += int(advance)
+
+    with Node("feeder", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+        hold_latched(node, "slam/map_to_odom")
+        node.subscribe("slam/pose", m.PoseEstimate, lambda p: (lock.acquire(), poses.append((time.monotonic(), p)),
+                                                               lock.release()))
+        node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(CALIB, 1, 1))
+        pops = node.publisher("flies/population", reliable=True)
+        proc = start_module("services.localiser", *args, port=zenoh_port, log_path=tmp_path / "loc1.log")
+        try:
+            deadline = time.monotonic() + 90
+            while not (saved.exists() and len(poses) >= 20):      # (populations before it is up are lost)
+                assert time.monotonic() < deadline, (tmp_path / "loc1.log").read_text()[-2000:]
+                n = len(poses)
+                feed(pops)
+                wait_until(lambda: len(poses) > n, 5)
+            proc.kill()
+            proc.wait(10)
+        finally:
+            stop(proc)
+        before = [p for _, p in poses]
+        assert saved.exists() and not any(p.status.startswith("relocalising") for p in before)
+        written_stamps, _ = read_tum(tum)
+        assert len(written_stamps) == len(before)                  # nothing lost to the kill
+        t_killed = time.monotonic()
+
+        proc = start_module("services.localiser", *args, port=zenoh_port, log_path=tmp_path / "loc2.log")
+        try:
+            n0 = len(poses)
+            restarted = time.monotonic()
+
+            feed(pops)                  # the robot moved on while its localiser was down ...
+            feed(pops)
+
+            def resumed():
+                feed(pops, advance=False)   # ... and waits for it (a loaded machine takes seconds to start one)
+                time.sleep(0.1)
+                with lock:
+                    return any(not p.status.startswith("relocalising") for _, p in poses[n0:])
+            assert wait_until(resumed, 60, poll=0.0), ((tmp_path / "loc2.log").read_text()[-3000:],
+                                                       [p.status for _, p in poses[n0:]][-5:])
+            with lock:
+                t_first, first = next((t, p) for t, p in poses[n0:] if not p.status.startswith("relocalising"))
+            k_first = where[first.source_seq]
+            for _ in range(5):
+                feed(pops)
+                time.sleep(0.1)
+        finally:
+            assert stop(proc) == 0, (tmp_path / "loc2.log").read_text()[-3000:]
+    print(f"\nrestart: first pose {t_first - restarted:.2f} s after the process started "
+          f"({t_first - t_killed:.2f} s after the kill), status {first.status!r}")
+    log = (tmp_path / "loc2.log").read_text()
+    assert "continuing the run's map" in log and "near the latched map->odom" in log, log[-2000:]
+    # the first pose after the restart is where the robot is in the run's map (its frame is the killed
+    # run's: the last pose before the kill, moved on by the true motion since), not a fresh map's origin
+    last = before[-1]
+    expected = m.transform_of(last) @ np.linalg.inv(truth(where[last.source_seq])) @ truth(k_first)
+    assert np.linalg.norm(m.transform_of(first)[:2, 3] - expected[:2, 3]) < 0.1, first.status
+    stamps, traj = read_tum(tum)
+    assert set(written_stamps) <= set(stamps.tolist())          # 100 % of the poses before the kill kept
+    assert np.all(np.diff(stamps) > 0) and stamps[-1] > written_stamps[-1]
+    after = stamps[stamps > written_stamps[-1]]
+    assert len(after) >= 5 and first.header.stamp_ns in after
