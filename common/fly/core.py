@@ -56,8 +56,7 @@ class EvolverServiceConfig:
     cpu_budget: float = field(default=0.35, metadata={
         "help": "evolve between frames only while the last second's CPU is under this fraction of a core"})
     degraded_share: float = field(default=0.6, metadata={
-        "help": "run degraded (no evolution between frames, shorter settles) while the evolver gets less "
-                "than this fraction of the CPU time it asks for"})
+        "help": "run degraded (no evolution between frames, shorter settles) below this share of the CPU asked for"})
     sonar_weight: float = field(default=0.0, metadata={"help": "weight of the sonar fitness term (0 = off)"})
     seed: int = field(default=0, metadata={"help": "random seed of the evolver"})
 
