@@ -210,12 +210,15 @@ def cpu_while_flowing(snapshots: list[tuple[float, int, dict[int, float]]], name
     (t0, f0, c0), (t1, f1, _) = snapshots[i0], snapshots[i1]
     if t1 <= t0 or f1 <= f0:
         return None, None
+    first: dict[int, float] = {}
     last: dict[int, float] = {}
-    for _, _, c in snapshots[i0:i1 + 1]:      # a process that ended (replay does) counts up to its last sample
-        last.update(c)
+    for _, _, c in snapshots[i0:i1 + 1]:      # a process that ended (replay does) counts up to its last sample,
+        last.update(c)                        # one started meanwhile (a restart) from its first
+        for pid, v in c.items():
+            first.setdefault(pid, v)
     cpu: dict[str, float] = {}
-    for pid, first in c0.items():
-        cpu[names.get(pid, "?")] = cpu.get(names.get(pid, "?"), 0.0) + last[pid] - first
+    for pid, v in first.items():
+        cpu[names.get(pid, "?")] = cpu.get(names.get(pid, "?"), 0.0) + last[pid] - v
     cpu["total"] = sum(cpu.values())
     return ({k: round(100 * v / (t1 - t0), 1) for k, v in cpu.items()},
             {k: round(1000 * v / (f1 - f0), 2) for k, v in cpu.items()})
