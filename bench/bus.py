@@ -2,7 +2,8 @@
 
 Measures, for the plain network transport and for Zenoh shared memory (``shm``):
 - latency (envelope stamp at the publisher → decoded at the subscriber) at a paced 30 frames/s,
-- throughput (frames/s decoded by the subscriber) with the publisher going as fast as it can.
+- throughput (frames/s decoded by the subscriber) with the publisher going as fast as it can;
+- CPU per paced frame (ms, all threads) of the publishing and of the subscribing process.
 
 Figures only, no pass/fail. With --json the last stdout line is one JSON object.
 """
@@ -57,13 +58,15 @@ def publisher(port: int, shm: bool, paced_frames: int, burst_s: float) -> None:
 
         seq = 0
         next_t = time.monotonic()
+        cpu0 = time.process_time()
         for _ in range(paced_frames):
             seq += 1
             put(seq)
             next_t += 1 / 30
             time.sleep(max(0.0, next_t - time.monotonic()))
+        cpu_ms = 1000 * (time.process_time() - cpu0) / max(paced_frames, 1)
         time.sleep(0.3)
-        session.put(KEY + "/phase", b"burst")
+        session.put(KEY + "/phase", f"burst {cpu_ms:.3f}".encode())
         time.sleep(0.2)
         t_end = time.monotonic() + burst_s
         while time.monotonic() < t_end:
@@ -77,7 +80,7 @@ def publisher(port: int, shm: bool, paced_frames: int, burst_s: float) -> None:
 def measure(port: int, shm: bool, paced_frames: int, burst_s: float) -> dict:
     latencies: list[float] = []
     burst_times: list[float] = []
-    phase = {"name": "paced"}
+    phase = {"name": "paced", "pub_cpu_ms": None, "sub_cpu": []}
     via_shm = [0, 0]  # [payloads that arrived as shared memory, all payloads]
     done = threading.Event()
     lock = threading.Lock()
@@ -90,13 +93,16 @@ def measure(port: int, shm: bool, paced_frames: int, burst_s: float) -> dict:
         with lock:
             if phase["name"] == "paced":
                 latencies.append((now - msg.header.stamp_ns) / 1e6)
+                phase["sub_cpu"].append(time.process_time())
             else:
                 burst_times.append(time.monotonic())
 
     def on_phase(sample: zenoh.Sample) -> None:
-        text = sample.payload.to_string()
+        text, _, cpu = sample.payload.to_string().partition(" ")
         with lock:
             phase["name"] = text
+            if cpu:
+                phase["pub_cpu_ms"] = float(cpu)
         if text == "done":
             done.set()
 
@@ -113,6 +119,11 @@ def measure(port: int, shm: bool, paced_frames: int, burst_s: float) -> dict:
     return {"latency_p50_ms": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
             "latency_p99_ms": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
             "frames_per_s": round(fps, 1), "frames_received_paced": int(lat.size),
+            "publisher_cpu_ms_per_frame": phase["pub_cpu_ms"],
+            # The subscribing process between its first and last paced frame (this process: Zenoh's threads,
+            # the callback and the decode).
+            "subscriber_cpu_ms_per_frame": round(1000 * (cpu[-1] - cpu[0]) / (len(cpu) - 1), 3)
+            if len(cpu := phase["sub_cpu"]) > 1 else None,
             "shm_payload_fraction": round(via_shm[0] / max(via_shm[1], 1), 3)}
 
 
@@ -139,7 +150,8 @@ def main(argv=None) -> int:
         results[label] = measure(port, shm, args.paced, args.burst_s)
         r = results[label]
         print(f"  {label:8s} latency p50 {r['latency_p50_ms']} ms  p99 {r['latency_p99_ms']} ms  "
-              f"throughput {r['frames_per_s']} frames/s (640×480 RGB pairs, decoded)", flush=True)
+              f"throughput {r['frames_per_s']} frames/s (640×480 RGB pairs, decoded); CPU per frame: publisher "
+              f"{r['publisher_cpu_ms_per_frame']} ms, subscriber {r['subscriber_cpu_ms_per_frame']} ms", flush=True)
     out = dict(results["network"])
     out["shm"] = results["shm"]
     if args.json:
