@@ -20,7 +20,7 @@ rad²: fusion fuses only status 'ok') and no ``map_to_odom`` (fusion and the pla
 is); the localiser is not updated, so it adds no keyframe and records no trajectory.  Once found,
 ``FlyLocaliser.relocalised`` restarts tracking there and the same population is localised as usual.
 ``hint_map_to_odom`` (a restart: the last map→odom published) makes the search a narrow one around
-``hint · T_odom_base``; after ``RelocaliserConfig.hint_frames`` searches without success it searches the whole map.
+``hint · T_odom_base``; after ``RelocaliserConfig.hint_frames`` searches without success, a global one.
 
 Not thread-safe: the service serialises calls.
 """

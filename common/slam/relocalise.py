@@ -2,37 +2,27 @@
 
 Global search, no I/O (LocaliserCore runs it while it is "relocalising"):
 
-1. rank the keyframes by a layout descriptor: the flies' plan view (fitness-weighted histogram of
-   forward × lateral position in base_link, square-rooted and blurred) is compared, by cosine, with
-   each keyframe's, under a lattice of planar offsets of the robot from the keyframe (one batch of
-   histograms, one matrix product).  In a corridor every view looks much alike, so the descriptor
-   only chooses which ``candidates`` keyframes to search around on a large map;
-2. register the flies, with the localiser's own δ registration (``register_planar``, planar, with its
-   stereo model), around each candidate keyframe's pose over ``window`` (keyframes are
-   ``keyframe_distance_m`` apart, so the windows tile the mapped path; a minimum on a window's edge
-   moves the window there, ``chase`` times) against one map for the whole search: the voxel-thinned
-   merge of every keyframe near a guess, one density however many keyframes saw a place; each
-   distinct answer is then scored again on one objective (δ of the flies against that map seen from
-   the answer, the window closed), so that answers found from different guesses compare;
-3. accept only a clear, confirmed answer: the best registration (lowest δ) must be an interior,
-   unambiguous minimum; no other answer (farther than ``agree_m`` / ``agree_rad``) may come within
-   ``rival_margin`` × |δ| of it, nor may a registration that stopped on its window's edge be better,
-   nor the best itself moved ``pin_check_m`` forwards or back (walls alone do not pin the position
-   along the view, and far structure pins it loosely: δ then has a flat valley or a second basin
-   there, and an answer 0.7 m off wins as often as the right one);
-   and the same pose must win ``confirmations`` + 1 searches in a row — the previous search's best
-   answer, carried to this frame by odometry, is searched from as one more guess and the new best
-   must agree with it (a hint agreeing confirms at once).  A corridor looks alike along its length:
-   δ has secondary minima a box or a door further on, nearly as deep, and which one wins flips from
-   frame to frame while the flies settle; a single winning registration is how a robot is put a door
-   further on, and one wrong pose poisons every keyframe after it, while waiting costs frames.
+1. rank the keyframes by a layout descriptor (the flies' plan view, a fitness-weighted forward ×
+   lateral histogram, compared by cosine under a lattice of robot-from-keyframe offsets); in a
+   corridor every view looks much alike, so it only chooses which ``candidates`` to search on a
+   large map;
+2. register the flies with the localiser's own δ (``register_planar``, planar, stereo model) around
+   each candidate keyframe's pose over ``window`` (the windows tile the mapped path; a minimum on a
+   window's edge moves it, ``chase`` times), against one voxel-thinned merge of the map for the whole
+   search; every distinct answer is re-scored with the window closed, so answers from different
+   guesses compare;
+3. accept only a clear, confirmed answer: the best (lowest δ) is an interior, unambiguous minimum; no
+   other answer comes within ``rival_margin`` × |δ| of it, nor a registration stopped on a window
+   edge, nor the best itself moved ``pin_check_m`` along its view (walls do not pin the position
+   along a corridor and far structure pins it loosely: δ has a flat valley or a second basin there);
+   and the same pose wins ``confirmations`` + 1 searches in a row (the previous best, carried by
+   odometry, is searched from too; a restart's hint agreeing confirms at once).  δ has secondary
+   minima a box or a door further on and which one wins flips while the flies settle: one wrong
+   pose poisons every keyframe after it, while waiting costs frames.
 
-Only populations evolved ``min_generations`` are searched with: a fresh population's flies are still
-biased in depth, which moves the answer along the line of sight (0.2–0.3 m on the corridor at 100–200
-generations, within 0.1 m from about 250).  Map keyframes keep no images, so the search uses the flies' geometry only; photometric tracking starts
-again from the found pose (FlyLocaliser.relocalised).  With a ``hint`` (a restart: the last pose
-written, carried forward by odometry) the one guess is the hint, the window ``hint_window``, and the
-hint is the confirming vote.
+Only populations evolved ``min_generations`` are used: younger flies are still biased in depth, which
+moves the answer along the line of sight.  Map keyframes keep no images, so the search uses geometry
+only; photometric tracking restarts from the found pose (FlyLocaliser.relocalised).
 """
 from __future__ import annotations
 
