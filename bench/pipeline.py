@@ -13,8 +13,8 @@ Prints, and with --json as one JSON object on the last line:
 - evolver_generations_per_s (median while frames flow), evolver_degraded_frames (frames evolved while the evolver ran degraded:
   it got less CPU than it asked for), evolver_cpu_share: from the evolver's last heartbeat;
 - peak_rss_mb: peak of the sum of all services' resident memory; rss_growth_mb: second half of the run
-  minus first half (≈ 0 when memory is flat; start-up falls in the first half), rss_growth_after_warmup_mb:
-  last quarter minus second quarter. Figures only, no pass/fail.
+  (up to the last frame) minus first half (≈ 0 when memory is flat; start-up falls in the first half),
+  rss_growth_after_warmup_mb: last quarter minus second quarter. Figures only, no pass/fail.
 - stages_ms: where a frame's latency goes (p50/p99 over the frames that got a pose), from the evolver's
   per-frame trace (``--trace``: monotonic times, the same clock as this process's receive times):
   frame→take (the frame waits in the evolver's latest-value slot while it finishes a generation or the
@@ -445,7 +445,9 @@ def run_once(args, out: Path, recording: Path) -> dict:
     flowing_rates = [r for n, r in generation_rates if 0 < n < frames_total[0]]
     evolved = evo.progress if evo else 0
     frames = frames_total[0]
-    rss = np.array(rss_samples)
+    # Up to the last frame: afterwards the services stop one by one and their memory leaves the sum.
+    last_frame_s = max(frame_seen.values()) - t_start if frame_seen else np.inf
+    rss = np.array([r for r in rss_samples if r[0] <= last_frame_s])
     half = len(rss) // 2
     result = {
         "pose_latency_p50_ms": round(float(np.percentile(lat, 50)), 1) if lat.size else None,
