@@ -54,6 +54,8 @@ class RelocaliserConfig:
     extent_m: tuple = (10.0, 4.0)        # descriptor covers forward 0..10 m, lateral ±4 m
     agree_m: float = 0.15                # two answers this near ...
     agree_rad: float = np.deg2rad(2.0)   # ... and this aligned are the same pose
+    confirm_rad: float = np.deg2rad(5.0)   # ... the previous answer carried by odometry may differ this much in
+                                           # heading (a wheel-slip burst turns odometry by degrees in a frame)
     rival_margin: float = 0.15           # an answer elsewhere must be worse than the best by this × |δ|
     pin_check_m: float = 0.6             # the best must also beat itself moved this far along its view
     confirmations: int = 2               # ... and the same pose must win this many more searches in a row
@@ -256,10 +258,10 @@ class Relocaliser:
             if self._score(points, fitness, B_map, best.T_map_base @ planar_pose(dx, 0.0, 0.0)) - best.delta < margin:
                 return Relocalisation(None, f"not pinned along the view: {dx:+.1f} m fits nearly as well",
                                       best.keyframe_id, best.delta, cands, best.T_map_base.copy())
-        agrees = previous is not None and _agree(previous, best.T_map_base, c)
+        agrees = previous is not None and _agree(previous, best.T_map_base, c, c.confirm_rad)
         streak = streak + 1 if agrees else 0
         out = Relocalisation(None, "", best.keyframe_id, best.delta, cands, best.T_map_base.copy(), streak)
-        if hint is not None and _agree(hint, best.T_map_base, c):
+        if hint is not None and _agree(hint, best.T_map_base, c, c.confirm_rad):
             out.T_map_base, out.reason = best.T_map_base.copy(), "confirmed by the hinted pose"
         elif streak >= c.confirmations:
             out.T_map_base, out.reason = best.T_map_base.copy(), f"the same pose won {streak + 1} frames in a row"
@@ -276,9 +278,9 @@ def _distance(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.linalg.norm(A[:2, 3] - B[:2, 3]))
 
 
-def _agree(A: np.ndarray, B: np.ndarray, cfg: RelocaliserConfig) -> bool:
+def _agree(A: np.ndarray, B: np.ndarray, cfg: RelocaliserConfig, max_rad: float | None = None) -> bool:
     dyaw = abs(wrap_angle(planar_from_transform(A)[2] - planar_from_transform(B)[2]))
-    return _distance(A, B) <= cfg.agree_m and dyaw <= cfg.agree_rad
+    return _distance(A, B) <= cfg.agree_m and dyaw <= (cfg.agree_rad if max_rad is None else max_rad)
 
 
 __all__ = ["Candidate", "PREVIOUS", "Relocalisation", "Relocaliser", "RelocaliserConfig"]
