@@ -46,8 +46,8 @@ INBOX_MAX_BYTES = 32 * 1024 * 1024
 
 def build_parser():
     p = service_parser("bridge", __doc__.splitlines()[0])
-    p.add_argument("--rrd", help="write the recording to this .rrd file (flushed and closed on stop); "
-                                    "if it exists, to the next free <stem>.<n>.rrd segment")
+    p.add_argument("--rrd", help="write the recording to this .rrd file, or to the next free <stem>.<n>.rrd "
+                                    "if it exists")
     p.add_argument("--grpc-port", type=int, default=9876, help="live gRPC server for viewers (0: none)")
     p.add_argument("--web-port", type=int, default=9090, help="web viewer over HTTP (0: none; needs --grpc-port)")
     p.add_argument("--bind", default="127.0.0.1",
