@@ -111,3 +111,22 @@ def test_a_saved_map_reloads_and_a_new_run_registers_against_it(tmp_path):
     assert ids[: len(saved.keyframes)] == [kf.id for kf in saved.keyframes] and len(set(ids)) == len(ids)
     assert len(ids) - len(saved.keyframes) <= 3                  # the saved map covers the stretch
     assert second.trajectory()[0].size == len(poses)
+
+
+def test_a_pose_graph_that_cannot_be_solved_does_not_stop_the_localiser(monkeypatch):
+    """GTSAM refusing a system (an indeterminate one, from a front end that diverged) costs the back-end's
+    correction, never the localiser: every population still gets a pose and the failures are counted."""
+    from common.slam import backend
+    from common.slam.posegraph import PoseGraphError
+
+    def unsolvable(self, newest_id, batch=False):
+        raise PoseGraphError("pose graph cannot be solved: Indeterminate linear system")
+
+    rng = np.random.default_rng(3)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0))
+    monkeypatch.setattr(backend.KeyframeGraph, "optimise", unsolvable)
+    poses = lap()[:60]
+    _, last, _ = drive(loc, ring_points(rng, 20000), poses, rng)
+    assert loc.graph_failures >= 2 and len(loc.keyframes) >= 3
+    assert len(loc.trajectory()[0]) == len(poses)
+    assert np.hypot(*(last.T_map_base[:2, 3] - np.array(poses[-1][:2]))) < 0.5

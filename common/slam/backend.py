@@ -134,11 +134,12 @@ class KeyframeGraph:
                                            cov_body)
 
     # ------------------------------------------------------------------------ optimising
-    def optimise(self, newest_id: int) -> np.ndarray:
+    def optimise(self, newest_id: int, batch: bool = False) -> np.ndarray:
         """Optimise and move every keyframe to its graph pose; returns the newest keyframe's correction
-        C (T_new = C · T_old, map frame), which the caller applies to its current estimate."""
+        C (T_new = C · T_old, map frame), which the caller applies to its current estimate.  ``batch``:
+        Levenberg-Marquardt over the whole graph, iSAM2 restarted from it (see PoseGraph.optimise)."""
         before = self.archive[newest_id].T_map_base.copy()
-        self.graph.optimise()
+        self.graph.optimise(batch=batch)
         for kf_id, T in self.graph.poses().items():
             kf = self.archive.get(kf_id)
             if kf is not None and not np.allclose(T, kf.T_map_base, atol=1e-7):   # (round-off moves nothing)

@@ -37,7 +37,7 @@ from common.registration.register import StereoModel
 from common.registration.photometric import pyramid
 from common.registration.weights import visible_mask
 from common.slam.backend import KeyframeGraph, LoopClosure, odometry_sigmas
-from common.slam.posegraph import planar_covariance
+from common.slam.posegraph import PoseGraphError, planar_covariance
 from common.slam.tracking import ReferenceView, photometric_fix, reference_view
 
 
@@ -151,6 +151,8 @@ class FlyLocaliser:
         self._driven_since_fix = 0.0
         self._turned_since_fix = 0.0
         self._last_fix_stamp: int | None = None
+        self._updates_since_fix = 0      # the constant-velocity prediction's uncertainty grows with it
+        self.graph_failures = 0          # pose-graph solves that failed (the front end carried on)
         self._pinned_hint = np.zeros(3, bool)      # see LocaliserConfig.tracking_recheck_pinned
         self._pinned_streak = 0
         self._last_odom: np.ndarray | None = None
@@ -294,7 +296,17 @@ class FlyLocaliser:
         be.add(kf, links, fix_cov)
         old = be.loop_candidate(kf, exclude=set()) if self.config.loop_closure else None
         handle = self._close_loop(old, kf) if old is not None else None
-        C = be.optimise(kf.id)
+        try:
+            C = be.optimise(kf.id)
+        except PoseGraphError:
+            # iSAM2 refuses a system it cannot eliminate (a front end that diverged hands it factors
+            # that contradict everything): start it again from a damped batch solve, and if even that
+            # fails keep the front end's poses; the localiser carries on either way.
+            self.graph_failures += 1
+            try:
+                C = be.optimise(kf.id, batch=True)
+            except PoseGraphError:
+                C = np.eye(4)
         if handle is not None and be.drop_if_outvoted(handle):
             be.loops[-1].accepted, be.loops[-1].reason = False, "outvoted by the graph"
             C = be.optimise(kf.id) @ C
@@ -390,6 +402,7 @@ class FlyLocaliser:
         self._track_update(stamp_ns, T_map_base)
         self._reference = None
         self._last_fix_stamp = stamp_ns
+        self._updates_since_fix = 0
         self._driven_since_fix = self._turned_since_fix = 0.0
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
@@ -480,6 +493,7 @@ class FlyLocaliser:
             if view_flies is not None and (registered or self._reference is None):
                 self._renew_reference(T_map_base, view_flies)
             self._track_update(stamp_ns, T_map_base)
+            self._updates_since_fix += 1
             anchor = self.keyframes[-1] if self.keyframes else None
             self._history.append((stamp_ns, anchor, T_map_base.copy() if anchor is None
                                   else invert(anchor.T_map_base) @ T_map_base))
@@ -487,6 +501,7 @@ class FlyLocaliser:
 
         def fixed(T_map_base, cov, delta=float("nan"), links=()):
             self._last_fix_stamp = stamp_ns
+            self._updates_since_fix = -1        # finish() counts this update
             self._driven_since_fix = 0.0
             self._turned_since_fix = 0.0
             return finish(T_map_base, "ok", True, cov, delta, links=links)
@@ -553,6 +568,13 @@ class FlyLocaliser:
             fix, _ = self._photometric(new_pyramid, T_map_base, T_pred, source)
             if fix is not None:
                 return fixed(fix.T_map_base, fix.covariance, res.delta, links)
+        if source != "odometry":
+            # δ alone, unconfirmed by the neighbourhoods, is held to what the motion model allows: with
+            # only a weak constant-velocity prior its χ² gate lets a wrong minimum turn the pose by 15°+
+            # (a turn's end in a corridor), and the next prediction then doubles that turn.
+            why = self._implausible(T_pred, T_map_base, source)
+            if why:
+                return finish(T_pred, f"rejected: δ registration {why}", False, cov_pred, res.delta)
         return fixed(T_map_base, planar_covariance(cov3), res.delta, links)
 
     def _renew_reference(self, T_map_base: np.ndarray, view_flies) -> None:
@@ -581,7 +603,15 @@ class FlyLocaliser:
                                    self.T_base_camera, c.photometric_min_inliers, search=search)
         if fix is None:
             return None, why
-        jump = invert(T_pred) @ fix.T_map_base
+        why = self._implausible(T_pred, fix.T_map_base, source)
+        return (None, f"photometric fix {why}") if why else (fix, "")
+
+    def _implausible(self, T_pred: np.ndarray, T_fix: np.ndarray, source: str) -> str:
+        """Why a fix is too far from the prediction to believe ('' when it is not).  With odometry: 4 σ
+        of the prior.  With constant velocity: a change of speed up to half the last step and 5° of
+        turn per update, growing with the updates since the last fix (the prediction's uncertainty
+        grows while nothing confirms it; a fixed limit would never let go of a turn that has ended)."""
+        jump = invert(T_pred) @ T_fix
         moved = np.linalg.norm(jump[:3, 3])
         turned = np.degrees(np.linalg.norm(so3_log(jump[:3, :3])))
         if source == "odometry":
@@ -589,13 +619,13 @@ class FlyLocaliser:
             limit_m, limit_deg = max(4 * sxy, 0.05), max(np.degrees(4 * syaw), 1.0)
         elif source == "none":       # what the lattice search spans
             limit_m, limit_deg = np.inf, 10.0
-        else:            # constant velocity: a change of speed up to half the last step, 5° of turn
+        else:
             step = np.linalg.norm(self._track.last_motion[:3, 3]) if self._track.last_motion is not None else 1.0
-            limit_m, limit_deg = 0.3 + 0.5 * step, 5.0
+            grown = 1 + max(self._updates_since_fix, 0)
+            limit_m, limit_deg = (0.3 + 0.5 * step) * grown, 5.0 * grown
         if moved > limit_m or turned > limit_deg:
-            return None, (f"photometric fix {moved:.2f} m / {turned:.1f}° from the prediction "
-                          f"(limit {limit_m:.2f} m / {limit_deg:.1f}°)")
-        return fix, ""
+            return f"{moved:.2f} m / {turned:.1f}° from the prediction (limit {limit_m:.2f} m / {limit_deg:.1f}°)"
+        return ""
 
     def _register_pinning_edges(self, register, window: np.ndarray, tracking: bool):
         """(result, pinned mask) of ``register(window)``.  A minimum on the window's edge in some
