@@ -199,8 +199,10 @@ class FlyLocaliser:
         """Keyframes the local map is chosen from: with the back-end and loop closure every archived
         keyframe (a place seen again is registered against what was mapped there), else the window."""
         if self.backend is not None and self.config.loop_closure and self.config.local_map_from_archive:
-            if self._pool_list is None or len(self._pool_list) != len(self.backend.archive):
-                self._pool_list = list(self.backend.archive.values())
+            archive = self.backend.archive      # (the size bound drops old keyframes as new ones come)
+            if (self._pool_list is None or len(self._pool_list) != len(archive)
+                    or (archive and self._pool_list[-1].id != next(reversed(archive)))):
+                self._pool_list = list(archive.values())
             return self._pool_list
         return self.keyframes
 
