@@ -28,7 +28,6 @@ from numba import njit
 from common.geometry import orthonormalised, so3_exp
 
 PATTERN = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.float32)   # (9, 2) px
-PATTERN_F64 = PATTERN.astype(np.float64)
 
 
 class AlignmentError(ValueError):
@@ -79,12 +78,62 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _residuals(P, T, img, fx, fy, cx, cy, z_min, pattern, ref0, valid_ref, r, valid):
-    """Zero-mean neighbourhood residuals r (N, 9) of the flies P moved by T in img (bilinear), and
-    which flies are in view (valid); flies out of view get r = 0."""
+def _reference_terms(P, fx, fy, ref, gx, gy, J, A):
+    """Per-level terms of the inverse-compositional step, from the reference image only: which flies'
+    neighbourhoods are in the reference (returned), the zero-mean Jacobians J (N, 9, 6) of their
+    residuals w.r.t. a right perturbation of the pose (image gradient · dπ/dp · [I | −[p]×]) and
+    A (N, 6, 6) = Σₒ JᵀJ per fly (upper triangle), the normal equations of a fly whose 9 residuals are
+    all Huber inliers. Flies not in the reference get zeros."""
+    n, m = ref.shape
+    valid_ref = np.zeros(n, np.bool_)
+    du = np.empty(6)
+    dv = np.empty(6)
+    mean = np.empty(6)
+    Ji = np.empty((m, 6))
+    Ai = np.empty((6, 6))
+    for i in range(n):
+        ok = True
+        for k in range(m):
+            if not (np.isfinite(ref[i, k]) and np.isfinite(gx[i, k]) and np.isfinite(gy[i, k])):
+                ok = False
+        valid_ref[i] = ok
+        if not ok:
+            J[i] = 0.0
+            A[i] = 0.0
+            continue
+        x, y, z = P[i, 0], P[i, 1], P[i, 2]
+        iz = 1.0 / z
+        du[0], du[1], du[2] = fx * iz, 0.0, -fx * x * iz * iz
+        du[3], du[4], du[5] = -fx * x * y * iz * iz, fx * (1 + x * x * iz * iz), -fx * y * iz
+        dv[0], dv[1], dv[2] = 0.0, fy * iz, -fy * y * iz * iz
+        dv[3], dv[4], dv[5] = -fy * (1 + y * y * iz * iz), fy * x * y * iz * iz, fy * x * iz
+        mean[:] = 0.0
+        for k in range(m):
+            for c in range(6):
+                jc = gx[i, k] * du[c] + gy[i, k] * dv[c]
+                Ji[k, c] = jc
+                mean[c] += jc
+        Ai[:] = 0.0
+        for k in range(m):
+            for c in range(6):
+                Ji[k, c] -= mean[c] / m
+                J[i, k, c] = Ji[k, c]
+            for c in range(6):
+                for d in range(c, 6):
+                    Ai[c, d] += Ji[k, c] * Ji[k, d]
+        A[i] = Ai
+    return valid_ref
+
+
+@njit(cache=True)
+def _unit_patch_residuals(P, T, img, fx, fy, cx, cy, z_min, ref0, valid_ref, r, valid):
+    """Zero-mean residuals r (N, 9) of the flies P moved by T in img over the 3×3 unit PATTERN
+    (bilinear; the nine samples share one 4×4 block of pixels and one pair of fractions), and which
+    flies are in view (valid, returned as their count); flies out of view get r = 0."""
     h, w = img.shape
-    m = pattern.shape[0]
-    vals = np.empty(m)
+    used = 0
+    vals = np.empty(9)
+    blk = np.empty((4, 4))
     for i in range(P.shape[0]):
         x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
         y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
@@ -93,53 +142,158 @@ def _residuals(P, T, img, fx, fy, cx, cy, z_min, pattern, ref0, valid_ref, r, va
         if ok:
             u0 = fx * x / z + cx
             v0 = fy * y / z + cy
+            ok = u0 - 1.0 >= 0.0 and v0 - 1.0 >= 0.0 and u0 + 1.0 < w - 1 and v0 + 1.0 < h - 1
+        if ok:
+            iu, iv = int(u0 - 1.0), int(v0 - 1.0)
+            a, b = u0 - 1.0 - iu, v0 - 1.0 - iv
+            for dy in range(4):
+                for dx in range(4):
+                    blk[dy, dx] = img[iv + dy, iu + dx]
             mean = 0.0
-            for k in range(m):
-                u = u0 + pattern[k, 0]
-                v = v0 + pattern[k, 1]
-                if not (u >= 0.0 and v >= 0.0 and u < w - 1 and v < h - 1):
-                    ok = False
-                    break
-                iu, iv = int(u), int(v)
-                a, b = u - iu, v - iv
-                val = ((1 - a) * (1 - b) * img[iv, iu] + a * (1 - b) * img[iv, iu + 1]
-                       + (1 - a) * b * img[iv + 1, iu] + a * b * img[iv + 1, iu + 1])
-                vals[k] = val
-                mean += val
-            if ok:
-                mean /= m
-                for k in range(m):
-                    r[i, k] = vals[k] - mean - ref0[i, k]
-        valid[i] = ok
-        if not ok:
-            for k in range(m):
+            for dy in range(3):
+                for dx in range(3):
+                    val = ((1 - a) * (1 - b) * blk[dy, dx] + a * (1 - b) * blk[dy, dx + 1]
+                           + (1 - a) * b * blk[dy + 1, dx] + a * b * blk[dy + 1, dx + 1])
+                    vals[3 * dy + dx] = val
+                    mean += val
+            mean /= 9.0
+            for k in range(9):
+                r[i, k] = vals[k] - mean - ref0[i, k]
+            used += 1
+        else:
+            for k in range(9):
                 r[i, k] = 0.0
+        valid[i] = ok
+    return used
 
 
 @njit(cache=True)
-def _normal_equations(J, r, valid, weights, huber_k):
-    """Gauss-Newton H = Σ w h JᵀJ and g = Σ w h Jᵀr with Huber weights h, and the inlier share."""
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
+def _robust_normal_equations(J, A, r, valid, weights, huber_k, H, g):
+    """Gauss-Newton H = Σ w h JᵀJ and g = Σ w h Jᵀr with Huber weights h (into H, g), and the inlier
+    share. A fly's precomputed A = Σₒ JᵀJ is taken as is and only its outliers' (1 − h) JᵀJ removed."""
+    H[:] = 0.0
+    g[:] = 0.0
     inliers, count = 0, 0
     for i in range(J.shape[0]):
         if not valid[i]:
             continue
+        wi = weights[i]
+        for c in range(6):
+            for d in range(c, 6):
+                H[c, d] += wi * A[i, c, d]
         for p in range(J.shape[1]):
-            a = abs(r[i, p])
-            hub = 1.0 if a <= huber_k else huber_k / a
-            wt = hub * weights[i]
-            inliers += a <= huber_k
+            e = r[i, p]
+            a = abs(e)
             count += 1
-            for c in range(6):
-                jc = wt * J[i, p, c]
-                g[c] += jc * r[i, p]
-                for d in range(c, 6):
-                    H[c, d] += jc * J[i, p, d]
+            if a <= huber_k:
+                inliers += 1
+                for c in range(6):
+                    g[c] += wi * J[i, p, c] * e
+            else:
+                hub = huber_k / a
+                for c in range(6):
+                    g[c] += wi * hub * J[i, p, c] * e
+                    jc = wi * (1.0 - hub) * J[i, p, c]
+                    for d in range(c, 6):
+                        H[c, d] -= jc * J[i, p, d]
     for c in range(6):
         for d in range(c):
             H[c, d] = H[d, c]
-    return H, g, inliers / max(count, 1)
+    return inliers / max(count, 1)
+
+
+@njit(cache=True)
+def _solve6(M, b, x):
+    """x = M⁻¹ b for a 6×6 M (Gaussian elimination with partial pivoting; M and b are overwritten);
+    False when a pivot is exactly zero, as LAPACK's gesv reports a singular matrix."""
+    n = 6
+    for col in range(n):
+        piv = col
+        for row in range(col + 1, n):
+            if abs(M[row, col]) > abs(M[piv, col]):
+                piv = row
+        if M[piv, col] == 0.0:
+            return False
+        if piv != col:
+            for k in range(n):
+                M[col, k], M[piv, k] = M[piv, k], M[col, k]
+            b[col], b[piv] = b[piv], b[col]
+        for row in range(col + 1, n):
+            f = M[row, col] / M[col, col]
+            for k in range(col, n):
+                M[row, k] -= f * M[col, k]
+            b[row] -= f * b[col]
+    for row in range(n - 1, -1, -1):
+        s = b[row]
+        for k in range(row + 1, n):
+            s -= M[row, k] * x[k]
+        x[row] = s / M[row, row]
+    return True
+
+
+@njit(cache=True)
+def _compose_inverse_increment(T, xi):
+    """T ← T · se3_exp(xi)⁻¹ in place (Rodrigues rotation, first-order translation, as se3_exp)."""
+    wx, wy, wz = xi[3], xi[4], xi[5]
+    th = np.sqrt(wx * wx + wy * wy + wz * wz)
+    R = np.eye(3)
+    if th < 1e-12:
+        s, c1, kx, ky, kz = 1.0, 0.0, wx, wy, wz
+    else:
+        s, c1, kx, ky, kz = np.sin(th), 1.0 - np.cos(th), wx / th, wy / th, wz / th
+    K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    for a in range(3):
+        for b in range(3):
+            kk = K[a, 0] * K[0, b] + K[a, 1] * K[1, b] + K[a, 2] * K[2, b]
+            R[a, b] += s * K[a, b] + c1 * kk
+    # inverse: rotation Rᵀ, translation −Rᵀ t
+    ti = np.empty(3)
+    for a in range(3):
+        ti[a] = -(R[0, a] * xi[0] + R[1, a] * xi[1] + R[2, a] * xi[2])
+    out = np.empty((3, 4))
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = T[a, 0] * R[b, 0] + T[a, 1] * R[b, 1] + T[a, 2] * R[b, 2]
+        out[a, 3] = T[a, 0] * ti[0] + T[a, 1] * ti[1] + T[a, 2] * ti[2] + T[a, 3]
+    T[:3, :] = out
+
+
+@njit(cache=True)
+def _gauss_newton(P, weights, valid_ref, ref0, J, A, T, img, fx, fy, cx, cy, z_min, iterations, min_flies,
+                  huber_px, r, valid, H):
+    """Up to ``iterations`` robust Gauss-Newton steps of one pyramid level, T updated in place and H
+    the last normal matrix. Returns (iterations run, status, robust scale σ̂, inlier share, flies in
+    view); status 0 converged or ran out of iterations, 1 too few flies in view, 2 singular."""
+    g = np.empty(6)
+    M = np.empty((6, 6))
+    dxi = np.empty(6)
+    absr = np.empty(r.shape[0] * r.shape[1])
+    sigma, inlier_frac, used = np.nan, 0.0, 0
+    for it in range(iterations):
+        used = _unit_patch_residuals(P, T, img, fx, fy, cx, cy, z_min, ref0, valid_ref, r, valid)
+        if used < min_flies:
+            return it + 1, 1, np.nan, 0.0, used
+        n = 0
+        for i in range(r.shape[0]):
+            if valid[i]:
+                for k in range(r.shape[1]):
+                    absr[n] = abs(r[i, k])
+                    n += 1
+        sigma = 1.4826 * np.median(absr[:n]) + 1e-6
+        inlier_frac = _robust_normal_equations(J, A, r, valid, weights, huber_px * sigma, H, g)
+        tr = 0.0
+        for c in range(6):
+            tr += H[c, c]
+        M[:, :] = H
+        for c in range(6):
+            M[c, c] += 1e-9 * tr
+        if not _solve6(M, g, dxi):
+            return it + 1, 2, sigma, 0.0, used
+        _compose_inverse_increment(T, dxi)
+        if (max(abs(dxi[0]), abs(dxi[1]), abs(dxi[2])) < 1e-4
+                and max(abs(dxi[3]), abs(dxi[4]), abs(dxi[5])) < 1e-5):
+            return it + 1, 0, sigma, inlier_frac, used
+    return iterations, 0, sigma, inlier_frac, used
 
 
 def _project(P: np.ndarray, fx, fy, cx, cy):
@@ -196,37 +350,25 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
         ref = _sample(Iref, uo, vo)
         gx = _sample(cv2.Sobel(Iref, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), uo, vo)
         gy = _sample(cv2.Sobel(Iref, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), uo, vo)
-        valid_ref = np.isfinite(ref).all(1) & np.isfinite(gx).all(1) & np.isfinite(gy).all(1)
-        # Jacobian of the projection w.r.t. a right perturbation of the point: dπ/dp · [I | −[p]×]
-        x, y, z = P[:, 0], P[:, 1], P[:, 2]
-        iz = 1.0 / z
-        du = np.stack([fx * iz, np.zeros_like(z), -fx * x * iz * iz,
-                       -fx * x * y * iz * iz, fx * (1 + x * x * iz * iz), -fx * y * iz], 1)
-        dv = np.stack([np.zeros_like(z), fy * iz, -fy * y * iz * iz,
-                       -fy * (1 + y * y * iz * iz), fy * x * y * iz * iz, fy * x * iz], 1)
-        J = gx[:, :, None] * du[:, None, :] + gy[:, :, None] * dv[:, None, :]      # (N, 9, 6)
-        J = np.where(valid_ref[:, None, None], J - J.mean(1, keepdims=True), 0.0)   # zero-mean patches
+        J = np.empty((len(P), len(PATTERN), 6))
+        A = np.empty((len(P), 6, 6))
+        valid_ref = _reference_terms(P, float(fx), float(fy), ref, gx, gy, J, A)
+        # zero-mean reference neighbourhoods kept in float32 as sampled: the tracked trajectory is
+        # sensitive to their rounding
         ref0 = np.where(valid_ref[:, None], ref - ref.mean(1, keepdims=True), 0.0)
-        Jc = np.ascontiguousarray(J)
         r = np.empty((len(P), len(PATTERN)))
         valid = np.empty(len(P), np.bool_)
-        for _ in range(iterations):
-            total_iters += 1
-            _residuals(P, T, Inew, fx, fy, cx, cy, depth_range[0], PATTERN_F64, ref0, valid_ref, r, valid)
-            used = int(valid.sum())
-            if used < min_flies:
-                return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, used, total_iters, False,
-                                 f"too few flies in view: {used} (need {min_flies})")
-            sigma = 1.4826 * float(np.median(np.abs(r[valid]))) + 1e-6
-            H, g, inlier_frac = _normal_equations(Jc, r, valid, w, huber_px * sigma)
-            try:
-                dxi = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
-            except np.linalg.LinAlgError:
-                return Alignment(T, np.full((6, 6), np.nan), sigma, 0.0, used, total_iters, False,
-                                 "singular alignment: the flies do not constrain all six degrees of freedom")
-            T = orthonormalised(T @ np.linalg.inv(se3_exp(dxi)))
-            if np.max(np.abs(dxi[:3])) < 1e-4 and np.max(np.abs(dxi[3:])) < 1e-5:
-                break
+        its, status, sigma, inlier_frac, used = _gauss_newton(
+            P, w, valid_ref, ref0, J, A, T, Inew, float(fx), float(fy), float(cx), float(cy),
+            float(depth_range[0]), int(iterations), int(min_flies), float(huber_px), r, valid, H)
+        total_iters += its
+        T = orthonormalised(T)
+        if status == 1:
+            return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, used, total_iters, False,
+                             f"too few flies in view: {used} (need {min_flies})")
+        if status == 2:
+            return Alignment(T, np.full((6, 6), np.nan), sigma, 0.0, used, total_iters, False,
+                             "singular alignment: the flies do not constrain all six degrees of freedom")
     wsum = float(w.sum())
     # H is Σ wᵢ hᵢ JᵀJ: with weights normalised to mean 1, σ̂² H⁻¹ is the Gauss-Newton covariance.
     scale = len(w) / wsum if wsum > 0 else 1.0
