@@ -78,3 +78,70 @@ def test_malformed_flies_are_refused_with_a_reason():
         align_flies(np.ones((10, 2)), np.ones(10), ref, ref, K)
     few = align_flies(flies_on_the_plane(10), np.ones(10), ref, ref, K)
     assert not few.ok and few.reason.startswith("too few flies")
+
+
+def reference_gauss_newton(P, w, ref_pyr, new_pyr, T, iterations=12, huber_px=1.345, min_flies=50, z_min=0.1):
+    """align_flies written out in plain numpy (a Jacobian array per level, a full median, the normal
+    equations summed per residual, LAPACK solves): what the fused kernels must reproduce."""
+    from common.geometry import orthonormalised
+    from common.registration.photometric import PATTERN, _sample, se3_exp
+    rng, T, iters, H = np.random.default_rng(0), T.copy(), 0, np.eye(6)
+    for level in range(len(ref_pyr) - 1, -1, -1):
+        n_level = max(min_flies, int(len(P) * 0.25 ** level * 4))
+        pick = np.sort(rng.choice(len(P), n_level, replace=False)) if n_level < len(P) else np.arange(len(P))
+        Pl, wl = P[pick], w[pick]
+        s = 0.5 ** level
+        fx, fy, cx, cy = K[0, 0] * s, K[1, 1] * s, (K[0, 2] + 0.5) * s - 0.5, (K[1, 2] + 0.5) * s - 0.5
+        Iref, Inew = ref_pyr[level], new_pyr[level].astype(np.float64)
+        x, y, z = Pl.T
+        uo = (fx * x / z + cx)[:, None] + PATTERN[:, 0]
+        vo = (fy * y / z + cy)[:, None] + PATTERN[:, 1]
+        ref = _sample(Iref, uo, vo)
+        gx = _sample(cv2.Sobel(Iref, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), uo, vo)
+        gy = _sample(cv2.Sobel(Iref, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), uo, vo)
+        valid_ref = np.isfinite(ref).all(1) & np.isfinite(gx).all(1) & np.isfinite(gy).all(1)
+        iz, zero = 1 / z, np.zeros_like(z)
+        du = np.stack([fx * iz, zero, -fx * x * iz ** 2, -fx * x * y * iz ** 2, fx * (1 + (x * iz) ** 2), -fx * y * iz], 1)
+        dv = np.stack([zero, fy * iz, -fy * y * iz ** 2, -fy * (1 + (y * iz) ** 2), fy * x * y * iz ** 2, fy * x * iz], 1)
+        J = gx[:, :, None] * du[:, None] + gy[:, :, None] * dv[:, None]
+        J = np.where(valid_ref[:, None, None], J - J.mean(1, keepdims=True), 0.0)
+        ref0 = np.where(valid_ref[:, None], ref - ref.mean(1, keepdims=True), 0.0)
+        h, wd = Inew.shape
+        for _ in range(iterations):
+            iters += 1
+            q = Pl @ T[:3, :3].T + T[:3, 3]
+            qz = np.where(q[:, 2] > z_min, q[:, 2], 1.0)
+            u = (fx * q[:, 0] / qz + cx)[:, None] + PATTERN[:, 0]
+            v = (fy * q[:, 1] / qz + cy)[:, None] + PATTERN[:, 1]
+            valid = valid_ref & (q[:, 2] > z_min) & ((u >= 0) & (v >= 0) & (u < wd - 1) & (v < h - 1)).all(1)
+            iu, iv = np.clip(u, 0, wd - 2).astype(int), np.clip(v, 0, h - 2).astype(int)
+            a, b = u - iu, v - iv
+            val = ((1 - a) * (1 - b) * Inew[iv, iu] + a * (1 - b) * Inew[iv, iu + 1]
+                   + (1 - a) * b * Inew[iv + 1, iu] + a * b * Inew[iv + 1, iu + 1])
+            r = np.where(valid[:, None], val - val.mean(1, keepdims=True) - ref0, 0.0)
+            sigma = 1.4826 * np.median(np.abs(r[valid])) + 1e-6
+            k = huber_px * sigma
+            hub = np.minimum(1.0, k / np.maximum(np.abs(r), 1e-300)) * wl[:, None] * valid[:, None]
+            H = np.einsum("np,npc,npd->cd", hub, J, J)
+            g = np.einsum("np,npc,np->c", hub, J, r)
+            inliers = float((np.abs(r) <= k)[valid].mean())
+            dxi = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
+            T = orthonormalised(T @ np.linalg.inv(se3_exp(dxi)))
+            if np.max(np.abs(dxi[:3])) < 1e-4 and np.max(np.abs(dxi[3:])) < 1e-5:
+                break
+    return T, sigma, inliers, iters
+
+
+@pytest.mark.parametrize("motion", [make_transform(rot_y(np.deg2rad(1.5)), [0.15, 0.05, 0.4]),
+                                    make_transform(rot_y(np.deg2rad(-3.0)), [0.5, 0.0, 1.5])])
+def test_the_fused_kernels_compute_the_plain_gauss_newton(motion):
+    """Same pose, robust scale, inlier share and iteration count as the numpy formulation, also when
+    flies leave the view and many residuals are Huber outliers (the second motion)."""
+    ref, new = pyramid(render(np.eye(4)), 4), pyramid(render(motion), 4)
+    P = flies_on_the_plane()
+    w = np.random.default_rng(2).uniform(0.2, 1.0, len(P))
+    res = align_flies(P, w, ref, new, K, np.eye(4))
+    T, sigma, inliers, iters = reference_gauss_newton(P, w, ref, new, np.eye(4))
+    assert res.ok and res.iterations == iters
+    np.testing.assert_allclose(res.T, T, atol=1e-9)
+    assert res.residual == pytest.approx(sigma, rel=1e-9) and res.inliers == pytest.approx(inliers, abs=1e-12)
