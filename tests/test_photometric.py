@@ -145,3 +145,28 @@ def test_the_fused_kernels_compute_the_plain_gauss_newton(motion):
     assert res.ok and res.iterations == iters
     np.testing.assert_allclose(res.T, T, atol=1e-9)
     assert res.residual == pytest.approx(sigma, rel=1e-9) and res.inliers == pytest.approx(inliers, abs=1e-12)
+
+
+def test_a_reference_changed_between_calls_is_not_aligned_with_stale_terms():
+    """The per-reference terms are reused across frames only for the very same pyramid and equal flies:
+    another pyramid, or flies / weights changed in place, give what a fresh computation gives."""
+    from common.registration import photometric
+    motion = make_transform(rot_y(np.deg2rad(1.0)), [0.1, 0.0, 0.3])
+    ref_a, ref_b = pyramid(render(np.eye(4)), 4), pyramid(render(invert(motion)), 4)
+    new = pyramid(render(motion), 4)
+    P = flies_on_the_plane()
+    w = np.random.default_rng(3).uniform(0.2, 1.0, len(P))
+
+    def fresh(*args):
+        photometric._REFERENCE_CACHE.clear()
+        return align_flies(*args).T
+
+    first = align_flies(P, w, ref_a, new, K)
+    assert np.array_equal(align_flies(P, w, ref_a, new, K).T, first.T)
+    assert np.array_equal(align_flies(P, w, ref_b, new, K).T, fresh(P, w, ref_b, new, K))
+    align_flies(P, w, ref_a, new, K)
+    P[:, :] *= 1.05
+    assert np.array_equal(align_flies(P, w, ref_a, new, K).T, fresh(P, w, ref_a, new, K))
+    align_flies(P, w, ref_a, new, K)
+    w[: len(w) // 2] = 0.0
+    assert np.array_equal(align_flies(P, w, ref_a, new, K).T, fresh(P, w, ref_a, new, K))

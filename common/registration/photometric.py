@@ -19,6 +19,7 @@ neighbourhoods within the Huber threshold at the end.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import cv2
@@ -301,6 +302,71 @@ def _project(P: np.ndarray, fx, fy, cx, cy):
     return fx * P[:, 0] / z + cx, fy * P[:, 1] / z + cy
 
 
+_REFERENCE_CACHE: list[dict] = []     # the last few reference_levels results, newest last
+_REFERENCE_CACHE_SIZE = 2
+
+
+def _level_terms(P_all, w_all, ref_pyramid, K, min_flies):
+    """Per pyramid level, coarse to fine: (level, flies, weights, fx, fy, cx, cy, valid_ref, ref0, J, A),
+    everything of the Gauss-Newton step that comes from the reference view alone."""
+    fx0, fy0, cx0, cy0 = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    rng = np.random.default_rng(0)
+    out = []
+    for level in range(len(ref_pyramid) - 1, -1, -1):
+        # a coarse level sees fewer pixels: fewer flies carry its information
+        n_level = max(min_flies, int(len(P_all) * 0.25 ** level * 4))
+        if n_level < len(P_all):
+            pick = np.sort(rng.choice(len(P_all), n_level, replace=False))
+            P, w = P_all[pick], w_all[pick]
+        else:
+            P, w = P_all, w_all
+        s = 0.5 ** level
+        fx, fy = float(fx0 * s), float(fy0 * s)
+        cx, cy = float((cx0 + 0.5) * s - 0.5), float((cy0 + 0.5) * s - 0.5)
+        Iref = ref_pyramid[level]
+        u, v = _project(P, fx, fy, cx, cy)
+        uo = u[:, None] + PATTERN[None, :, 0]
+        vo = v[:, None] + PATTERN[None, :, 1]
+        ref = _sample(Iref, uo, vo)
+        gx = _sample(cv2.Sobel(Iref, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), uo, vo)
+        gy = _sample(cv2.Sobel(Iref, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), uo, vo)
+        J = np.empty((len(P), len(PATTERN), 6))
+        A = np.empty((len(P), 6, 6))
+        valid_ref = _reference_terms(P, fx, fy, ref, gx, gy, J, A)
+        # zero-mean reference neighbourhoods kept in float32 as sampled: the tracked trajectory is
+        # sensitive to their rounding
+        ref0 = np.where(valid_ref[:, None], ref - ref.mean(1, keepdims=True), 0.0)
+        out.append((level, P, w, fx, fy, cx, cy, valid_ref, ref0, J, A))
+    return out
+
+
+def reference_levels(points_ref, weights, P, w, ref_pyramid, K, min_flies, depth_range):
+    """:func:`_level_terms` of the filtered flies P, w, reused while the same reference is tracked.
+
+    A tracking reference is aligned into frame after frame; its terms are kept for the last
+    ``_REFERENCE_CACHE_SIZE`` references and reused when the pyramid levels are the very same arrays
+    (held by weak reference: an array freed and another allocated at its address does not match) and
+    the flies, weights, K, min_flies and depth range are equal. Invariant: a pyramid level is not
+    modified in place once built (:func:`pyramid` always returns new arrays)."""
+    pts, wts, Km = np.asarray(points_ref), np.asarray(weights), np.asarray(K, np.float64)
+    for entry in reversed(_REFERENCE_CACHE):
+        if (len(entry["levels"]) == len(ref_pyramid)
+                and all(ref() is lvl for ref, lvl in zip(entry["levels"], ref_pyramid))
+                and entry["params"] == (min_flies, tuple(depth_range))
+                and np.array_equal(entry["points"], pts) and np.array_equal(entry["weights"], wts)
+                and np.array_equal(entry["K"], Km)):
+            return [(t[0], t[1:]) for t in entry["terms"]]
+    terms = _level_terms(P, w, ref_pyramid, Km, min_flies)
+    try:
+        levels = tuple(weakref.ref(lvl) for lvl in ref_pyramid)
+    except TypeError:               # not weak-referenceable (not an ndarray): nothing to key on
+        return [(t[0], t[1:]) for t in terms]
+    _REFERENCE_CACHE.append(dict(levels=levels, params=(min_flies, tuple(depth_range)), points=pts.copy(),
+                                 weights=wts.copy(), K=Km.copy(), terms=terms))
+    del _REFERENCE_CACHE[:-_REFERENCE_CACHE_SIZE]
+    return [(t[0], t[1:]) for t in terms]
+
+
 def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[np.ndarray],
                 new_pyramid: list[np.ndarray], K: np.ndarray, T_init: np.ndarray | None = None,
                 iterations: int = 12, huber_px: float = 1.345, min_flies: int = 50,
@@ -325,42 +391,18 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
     if len(P) < min_flies:
         return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, len(P), 0, False,
                          f"too few flies to align: {len(P)} (need {min_flies})")
-    fx0, fy0, cx0, cy0 = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     total_iters = 0
     H = np.eye(6)
     sigma = np.nan
     inlier_frac, used = 0.0, 0
-    rng = np.random.default_rng(0)
-    P_all, w_all = P, w
-    for level in range(len(ref_pyramid) - 1, -1, -1):
-        # a coarse level sees fewer pixels: fewer flies carry its information
-        n_level = max(min_flies, int(len(P_all) * 0.25 ** level * 4))
-        if n_level < len(P_all):
-            pick = np.sort(rng.choice(len(P_all), n_level, replace=False))
-            P, w = P_all[pick], w_all[pick]
-        else:
-            P, w = P_all, w_all
-        s = 0.5 ** level
-        fx, fy = fx0 * s, fy0 * s
-        cx, cy = (cx0 + 0.5) * s - 0.5, (cy0 + 0.5) * s - 0.5
-        Iref, Inew = ref_pyramid[level], new_pyramid[level]
-        u, v = _project(P, fx, fy, cx, cy)
-        uo = u[:, None] + PATTERN[None, :, 0]
-        vo = v[:, None] + PATTERN[None, :, 1]
-        ref = _sample(Iref, uo, vo)
-        gx = _sample(cv2.Sobel(Iref, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), uo, vo)
-        gy = _sample(cv2.Sobel(Iref, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), uo, vo)
-        J = np.empty((len(P), len(PATTERN), 6))
-        A = np.empty((len(P), 6, 6))
-        valid_ref = _reference_terms(P, float(fx), float(fy), ref, gx, gy, J, A)
-        # zero-mean reference neighbourhoods kept in float32 as sampled: the tracked trajectory is
-        # sensitive to their rounding
-        ref0 = np.where(valid_ref[:, None], ref - ref.mean(1, keepdims=True), 0.0)
+    for level, (P, w, fx, fy, cx, cy, valid_ref, ref0, J, A) in reference_levels(
+            points_ref, weights, P, w, ref_pyramid, K, min_flies, depth_range):
+        Inew = new_pyramid[level]
         r = np.empty((len(P), len(PATTERN)))
         valid = np.empty(len(P), np.bool_)
         its, status, sigma, inlier_frac, used = _gauss_newton(
-            P, w, valid_ref, ref0, J, A, T, Inew, float(fx), float(fy), float(cx), float(cy),
-            float(depth_range[0]), int(iterations), int(min_flies), float(huber_px), r, valid, H)
+            P, w, valid_ref, ref0, J, A, T, Inew, fx, fy, cx, cy, float(depth_range[0]), int(iterations),
+            int(min_flies), float(huber_px), r, valid, H)
         total_iters += its
         T = orthonormalised(T)
         if status == 1:
