@@ -31,9 +31,9 @@ DEFAULT_RECORDING = Path(".cache/real/kitti-00-frames-0-99.mcap")
 
 def record_calls(recording: Path, max_frames: int | None, generations: int):
     """Run the lockstep chain on ``recording`` with the tracking calls recorded: (kind, args, kwargs, cpu_s)."""
-    import common.slam.tracking as tracking
     from common.lockstep import run_lockstep
     from common.recording import RecordingReader
+    from common.slam import tracking
 
     calls = []
     originals = {"align": tracking.align_flies, "coarse": tracking.coarse_search}

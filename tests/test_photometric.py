@@ -101,8 +101,10 @@ def reference_gauss_newton(P, w, ref_pyr, new_pyr, T, iterations=12, huber_px=1.
         gy = _sample(cv2.Sobel(Iref, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), uo, vo)
         valid_ref = np.isfinite(ref).all(1) & np.isfinite(gx).all(1) & np.isfinite(gy).all(1)
         iz, zero = 1 / z, np.zeros_like(z)
-        du = np.stack([fx * iz, zero, -fx * x * iz ** 2, -fx * x * y * iz ** 2, fx * (1 + (x * iz) ** 2), -fx * y * iz], 1)
-        dv = np.stack([zero, fy * iz, -fy * y * iz ** 2, -fy * (1 + (y * iz) ** 2), fy * x * y * iz ** 2, fy * x * iz], 1)
+        du = np.stack([fx * iz, zero, -fx * x * iz ** 2,
+                       -fx * x * y * iz ** 2, fx * (1 + (x * iz) ** 2), -fx * y * iz], 1)
+        dv = np.stack([zero, fy * iz, -fy * y * iz ** 2,
+                       -fy * (1 + (y * iz) ** 2), fy * x * y * iz ** 2, fy * x * iz], 1)
         J = gx[:, :, None] * du[:, None] + gy[:, :, None] * dv[:, None]
         J = np.where(valid_ref[:, None, None], J - J.mean(1, keepdims=True), 0.0)
         ref0 = np.where(valid_ref[:, None], ref - ref.mean(1, keepdims=True), 0.0)

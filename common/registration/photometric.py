@@ -361,8 +361,8 @@ def reference_levels(points_ref, weights, P, w, ref_pyramid, K, min_flies, depth
         levels = tuple(weakref.ref(lvl) for lvl in ref_pyramid)
     except TypeError:               # not weak-referenceable (not an ndarray): nothing to key on
         return [(t[0], t[1:]) for t in terms]
-    _REFERENCE_CACHE.append(dict(levels=levels, params=(min_flies, tuple(depth_range)), points=pts.copy(),
-                                 weights=wts.copy(), K=Km.copy(), terms=terms))
+    _REFERENCE_CACHE.append({"levels": levels, "params": (min_flies, tuple(depth_range)), "points": pts.copy(),
+                             "weights": wts.copy(), "K": Km.copy(), "terms": terms})
     del _REFERENCE_CACHE[:-_REFERENCE_CACHE_SIZE]
     return [(t[0], t[1:]) for t in terms]
 
@@ -387,16 +387,16 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
     if not (np.all(np.isfinite(T)) and np.all(np.isfinite(K))):
         raise AlignmentError("T_init and K must be finite")
     ok = np.isfinite(P).all(1) & np.isfinite(w) & (w > 0) & (P[:, 2] > depth_range[0]) & (P[:, 2] < depth_range[1])
-    P, w = P[ok], w[ok]
-    if len(P) < min_flies:
-        return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, len(P), 0, False,
-                         f"too few flies to align: {len(P)} (need {min_flies})")
+    P_all, w_all = P[ok], w[ok]
+    if len(P_all) < min_flies:
+        return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, len(P_all), 0, False,
+                         f"too few flies to align: {len(P_all)} (need {min_flies})")
     total_iters = 0
     H = np.eye(6)
     sigma = np.nan
     inlier_frac, used = 0.0, 0
     for level, (P, w, fx, fy, cx, cy, valid_ref, ref0, J, A) in reference_levels(
-            points_ref, weights, P, w, ref_pyramid, K, min_flies, depth_range):
+            points_ref, weights, P_all, w_all, ref_pyramid, K, min_flies, depth_range):
         Inew = new_pyramid[level]
         r = np.empty((len(P), len(PATTERN)))
         valid = np.empty(len(P), np.bool_)
