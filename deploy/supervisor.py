@@ -347,7 +347,10 @@ class Child:
     def start(self, env: dict) -> None:
         with open(self.log_path, "ab") as logf:
             logf.write(f"\n=== start #{self.restarts + 1} at {time.strftime('%H:%M:%S')}: {' '.join(self.argv)}\n".encode())
-            self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT, env=env,
+            # FLYSLAM_RESTARTS: how many times this service was restarted in this run (0: a fresh start);
+            # a restarted service continues the run's output, a fresh one never takes an old run's.
+            self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT,
+                                         env=dict(env, FLYSLAM_RESTARTS=str(self.restarts)),
                                          preexec_fn=_die_with_parent, cwd=ROOT)
         if self.watchdog is not None:
             self.watchdog.watch(self.proc.pid)   # setpgrp in the child: its pgid is its pid

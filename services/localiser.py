@@ -11,9 +11,11 @@ on exit); ``--map FILE`` starts from a saved map, relocalising in it. The state 
 Restarts (the supervisor restarts a killed localiser with the same flags) lose nothing: the ``--tum``
 file is never overwritten — the poses it already holds are kept ahead of this run's, each new pose is
 appended as it is published and the whole file is rewritten atomically every ``tum_period_s`` with
-the back-end's (optimised) trajectory.  A ``map.mcap`` already in the run folder is the one the killed
-run saved: it is loaded (in preference to ``--map``) and the localiser relocalises in it, near the
-``slam/map_to_odom`` the bus still latches (the supervisor holds it), so poses resume at once.
+the back-end's (optimised) trajectory.  On a restart (the supervisor sets ``FLYSLAM_RESTARTS`` > 0) the
+run folder's ``map.mcap`` is the one the killed run saved: it is loaded (in preference to ``--map``) and
+the localiser relocalises in it, near the ``slam/map_to_odom`` the bus still latches (the supervisor
+holds it), so poses resume at once.  A fresh start into a folder an earlier run wrote sets that run's
+trajectory and map aside (``*.previous.*``) instead of continuing them.
 """
 from __future__ import annotations
 
@@ -100,10 +102,25 @@ class TrajectoryFile:
             self._fh = None
 
 
+def is_restart() -> bool:
+    """Whether the supervisor restarted this service (FLYSLAM_RESTARTS > 0) rather than started it."""
+    return os.environ.get("FLYSLAM_RESTARTS", "0").strip() not in ("", "0")
+
+
+def set_aside_earlier_run(*paths: Path | None) -> None:
+    """A fresh start into a folder an earlier run wrote: its trajectory and map are moved to
+    ``<stem>.previous<suffix>`` (kept, never continued: that robot was somewhere else)."""
+    for path in paths:
+        if path is not None and path.exists():
+            aside = path.with_name(f"{path.stem}.previous{path.suffix}")
+            os.replace(path, aside)
+            log.warning("%s is an earlier run's: moved to %s", path, aside.name)
+
+
 def starting_map(run: LocaliserServiceConfig, map_path: Path | None):
-    """(map data or None, restarted): the run folder's map.mcap (a restart) before ``--map``; raises
+    """(map data or None, restarted): on a restart the run folder's map.mcap, else ``--map``; raises
     MapFileError for a bad ``--map`` (a bad run-folder map is logged and ignored: the run goes on)."""
-    if map_path is not None and map_path.exists():
+    if map_path is not None and map_path.exists() and is_restart():
         try:
             data = load_map(map_path)
             log.info("restart: continuing the run's map %s (%d keyframes)", map_path, len(data.keyframes))
@@ -120,6 +137,8 @@ def starting_map(run: LocaliserServiceConfig, map_path: Path | None):
 def body(node, args) -> int:
     run = config_or_exit(LocaliserServiceConfig, args)
     map_path = Path(run.tum).parent / "map.mcap" if run.tum else None
+    if not is_restart():
+        set_aside_earlier_run(Path(run.tum) if run.tum else None, map_path)
     try:
         initial_map, restarted = starting_map(run, map_path)
     except MapFileError as e:

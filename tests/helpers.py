@@ -22,10 +22,12 @@ def hub(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def start_module(module: str, *args: str, port: int, log_path: Path | None = None) -> subprocess.Popen:
-    """Start ``python -m module args --hub ...`` as its own process."""
+def start_module(module: str, *args: str, port: int, log_path: Path | None = None,
+                 restarts: int = 0) -> subprocess.Popen:
+    """Start ``python -m module args --hub ...`` as its own process (``restarts``: as the supervisor
+    starts a service it has restarted that many times)."""
     out = open(log_path, "wb") if log_path else subprocess.DEVNULL
-    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT), FLYSLAM_RESTARTS=str(restarts))
     return subprocess.Popen([sys.executable, "-m", module, *args, "--hub", hub(port)], stdout=out,
                             stderr=subprocess.STDOUT, cwd=ROOT, env=env)
 

@@ -75,7 +75,8 @@ def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp
         assert len(written_stamps) == len(before)                  # nothing lost to the kill
         t_killed = time.monotonic()
 
-        proc = start_module("services.localiser", *args, port=zenoh_port, log_path=tmp_path / "loc2.log")
+        proc = start_module("services.localiser", *args, port=zenoh_port, log_path=tmp_path / "loc2.log",
+                            restarts=1)
         try:
             n0 = len(poses)
             restarted = time.monotonic()
@@ -112,3 +113,26 @@ def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp
     assert np.all(np.diff(stamps) > 0) and stamps[-1] > written_stamps[-1]
     after = stamps[stamps > written_stamps[-1]]
     assert len(after) >= 5 and first.header.stamp_ns in after
+
+
+def test_a_fresh_start_sets_an_earlier_runs_files_aside_instead_of_continuing_them(tmp_path, monkeypatch):
+    """`flyslam run --out` into an old run's folder: the new robot is not relocalised in the old map,
+    and the old trajectory and map are kept beside the new ones."""
+    from services.localiser import build_parser, set_aside_earlier_run, starting_map
+    from common.config_args import config_from_args
+    from common.slam.core import LocaliserServiceConfig
+    from common.slam.mapfile import save_map
+    from common.slam.localiser import Keyframe
+
+    tum, saved = tmp_path / "estimated.tum", tmp_path / "map.mcap"
+    tum.write_text("1.0 0 0 0 0 0 0 1\n")
+    save_map(saved, [Keyframe(0, 1, np.eye(4), np.zeros((200, 3), np.float32), np.ones(200, np.float32))], [])
+    run = config_from_args(LocaliserServiceConfig, build_parser().parse_args(["--tum", str(tum)]))
+    monkeypatch.setenv("FLYSLAM_RESTARTS", "1")
+    assert starting_map(run, saved)[1] is True                       # a restart continues the map
+    monkeypatch.setenv("FLYSLAM_RESTARTS", "0")
+    assert starting_map(run, saved) == (None, False)                 # a fresh start does not
+    set_aside_earlier_run(tum, saved)
+    assert not tum.exists() and not saved.exists()
+    assert (tmp_path / "estimated.previous.tum").read_text().startswith("1.0")
+    assert (tmp_path / "map.previous.mcap").exists()
