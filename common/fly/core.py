@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -42,6 +43,10 @@ log = logging.getLogger("flyslam.evolver")
 
 
 NO_ODOMETRY_MIN_GENERATIONS = 30
+# A frame's settle is done when the population is back to the best quality of this many recent frames,
+# not merely the previous one's: against the previous frame alone each settle may end 1 - recovery
+# lower than the last, and with no evolution between frames (degraded) the quality decays geometrically.
+QUALITY_REFERENCE_FRAMES = 10
 
 
 @dataclass
@@ -50,7 +55,7 @@ class EvolverServiceConfig:
     settle_ms: float = field(default=40.0, metadata={"help": "longest evolution on a new frame before publishing (ms)"})
     min_generations: int = field(default=1, metadata={"help": "generations on a new frame before it may be published"})
     recovery: float = field(default=0.95, metadata={
-        "help": "publish once mean fitness is back to this fraction of the previous frame's"})
+        "help": "publish once mean fitness is back to this fraction of the best of the last frames'"})
     publish_hz: float = field(default=10.0, metadata={"help": "republish rate between frames (Hz)"})
     duty: float = field(default=0.7, metadata={"help": "fraction of wall time spent evolving between frames"})
     cpu_budget: float = field(default=0.35, metadata={
@@ -113,6 +118,7 @@ class EvolverCore(LatchedInputs):
         self._last_T_odom_cam: np.ndarray | None = None
         self._current: tuple[int, int, np.ndarray | None] | None = None   # seq, stamp, T_odom_cam
         self._left_grey: np.ndarray | None = None
+        self._recent_quality: deque[float] = deque(maxlen=QUALITY_REFERENCE_FRAMES)
 
     # ------------------------------------------------------------------------------- inputs
 
@@ -139,6 +145,7 @@ class EvolverCore(LatchedInputs):
                 self._attach_sonar(self.evolver, calib)
             self._last_T_odom_cam = None
             self._current = None
+            self._recent_quality.clear()
             log.info("calibration %dx%d f=%.1f B=%.3f: %d flies", calib.width, calib.height, calib.fx,
                      calib.baseline, self.config.population)
         return None
@@ -155,7 +162,10 @@ class EvolverCore(LatchedInputs):
         except (m.DecodeError, CalibrationError) as e:
             return FrameResult(reason=f"bad frame: {e}")
         t_decoded = self.clock()
-        reference = population_quality(evolver.fitness) if self._current is not None else None
+        reference = None
+        if self._current is not None:
+            self._recent_quality.append(population_quality(evolver.fitness))
+            reference = max(self._recent_quality)
         stamp = frame.header.stamp_ns
         T_odom_base = self.odometry.at(stamp)
         T_odom_cam = None if T_odom_base is None else T_odom_base @ calib.T_base_camera

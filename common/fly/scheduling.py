@@ -27,7 +27,7 @@ def population_quality(fitness: np.ndarray) -> float:
 @dataclass(frozen=True)
 class SettlePolicy:
     """How long a new frame's population evolves before it is published: at least ``min_generations``,
-    then until its quality is back to ``recovery`` × the previous frame's, at most ``budget_s`` seconds
+    then until its quality is back to ``recovery`` × the reference (recent frames' best), at most ``budget_s`` seconds
     (``recovery`` > 1 is never reached in practice: the whole budget, as a fixed settle time)."""
     budget_s: float
     min_generations: int = 1
