@@ -495,7 +495,7 @@ class FlyLocaliser:
             if view_flies is not None and (registered or self._reference is None):
                 self._renew_reference(T_map_base, view_flies)
             self._track_update(stamp_ns, T_map_base)
-            self._updates_since_fix += 1
+            self._updates_since_fix = 0 if registered else self._updates_since_fix + 1
             anchor = self.keyframes[-1] if self.keyframes else None
             self._history.append((stamp_ns, anchor, T_map_base.copy() if anchor is None
                                   else invert(anchor.T_map_base) @ T_map_base))
@@ -503,7 +503,6 @@ class FlyLocaliser:
 
         def fixed(T_map_base, cov, delta=float("nan"), links=()):
             self._last_fix_stamp = stamp_ns
-            self._updates_since_fix = -1        # finish() counts this update
             self._driven_since_fix = 0.0
             self._turned_since_fix = 0.0
             return finish(T_map_base, "ok", True, cov, delta, links=links)
@@ -623,7 +622,7 @@ class FlyLocaliser:
             limit_m, limit_deg = np.inf, 10.0
         else:
             step = np.linalg.norm(self._track.last_motion[:3, 3]) if self._track.last_motion is not None else 1.0
-            grown = 1 + max(self._updates_since_fix, 0)
+            grown = 1 + self._updates_since_fix
             limit_m, limit_deg = (0.3 + 0.5 * step) * grown, 5.0 * grown
         if moved > limit_m or turned > limit_deg:
             return f"{moved:.2f} m / {turned:.1f}° from the prediction (limit {limit_m:.2f} m / {limit_deg:.1f}°)"
