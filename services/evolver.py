@@ -9,11 +9,12 @@ frames it keeps evolving and republishes at ``--publish-hz``, spending at most `
 time and only while its CPU over the last second is under ``--cpu-budget`` of a core.
 ``--trace`` publishes each frame's stage times on ``trace/evolver``.
 
-Degraded mode: while the evolver gets less than ``--degraded-share`` of the CPU time it asks for (another
-busy process on its core: :class:`common.fly.scheduling.CpuGovernor`), it stops evolving between frames
+Degraded mode: while the evolver gets less than ``--degraded-share`` of the CPU time it asks for and the
+machine has less than ``--free-cpu-floor`` of a core idle (overloaded: :class:`common.fly.scheduling.CpuGovernor`), it stops evolving between frames
 and shortens each frame's settle in proportion, so frames are published sooner and the localiser gets
 the CPU; the newest frame is always the one taken. Its heartbeat then says ``state: degraded``, counts
-``degraded_frames`` and carries ``cpu_share`` and ``cpu_used`` (fractions of a core) in its rates.
+``degraded_frames`` and carries ``cpu_share``, ``cpu_used`` and ``cpu_free`` (the machine's idle cores) in its
+rates.
 """
 from __future__ import annotations
 
@@ -93,6 +94,8 @@ def report_governor(node, governor) -> None:
     """The heartbeat's view of the CPU: share obtained, CPU used, and the degraded state (logged on change)."""
     node.rates["cpu_share"] = round(governor.share, 3)
     node.rates["cpu_used"] = round(governor.spent, 3)
+    if governor.free is not None:
+        node.rates["cpu_free"] = round(governor.free, 3)
     state = "degraded" if governor.degraded else "running"
     if state != node.state:
         log.log(logging.WARNING if governor.degraded else logging.INFO,

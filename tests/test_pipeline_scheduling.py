@@ -2,10 +2,19 @@
 CPU governor: it evolves between frames within its CPU budget, and runs degraded when starved of CPU."""
 from __future__ import annotations
 
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from common.fly.scheduling import CpuGovernor, SettlePolicy, population_quality, settle
+from common.fly.scheduling import (
+    CpuGovernor,
+    SettlePolicy,
+    machine_idle_seconds,
+    population_quality,
+    settle,
+)
 
 
 class RisingEvolver:
@@ -76,19 +85,25 @@ class Machine:
 
     def __init__(self):
         self.wall, self.cpu, self.share = 0.0, 0.0, 1.0
+        self.idle_cpu, self.idle_cores = 0.0, 0.0     # the whole machine's idle CPU-seconds, and its rate
 
     def work(self, governor: CpuGovernor, wall_s: float) -> None:
         with governor.work():
-            self.wall += wall_s
+            self.advance(wall_s)
             self.cpu += wall_s * self.share
 
     def idle(self, wall_s: float) -> None:
+        self.advance(wall_s)
+
+    def advance(self, wall_s: float) -> None:
         self.wall += wall_s
+        self.idle_cpu += wall_s * self.idle_cores
 
 
-def _governor(machine: Machine, budget: float = 0.3) -> CpuGovernor:
-    return CpuGovernor(budget=budget, degraded_below=0.6, recovered_above=0.75,
-                       thread_clock=lambda: machine.cpu, clock=lambda: machine.wall)
+def _governor(machine: Machine, budget: float = 0.3, knows_idle: bool = False) -> CpuGovernor:
+    return CpuGovernor(budget=budget, degraded_below=0.6, recovered_above=0.75, free_floor=0.1,
+                       thread_clock=lambda: machine.cpu, clock=lambda: machine.wall,
+                       idle_clock=(lambda: machine.idle_cpu) if knows_idle else None)
 
 
 def test_evolution_between_frames_stops_once_the_cpu_budget_of_the_last_second_is_spent():
@@ -121,6 +136,37 @@ def test_a_starved_evolver_runs_degraded_with_shorter_settles_and_recovers_with_
     for _ in range(40):
         machine.work(governor, 0.010)
     assert not governor.degraded and governor.settle_scale() == 1.0 and governor.optional_allowed()
+
+
+def test_a_low_share_on_a_machine_with_idle_cpu_is_not_overload():
+    machine = Machine()
+    governor = _governor(machine, budget=1.0, knows_idle=True)
+    machine.share, machine.idle_cores = 0.6 * 0.9, 0.5   # waits for a core now and then; half a core idle
+    for _ in range(200):
+        machine.work(governor, 0.010)
+    assert governor.free == pytest.approx(0.5) and governor.share < 0.6
+    assert not governor.degraded and governor.optional_allowed() and governor.settle_scale() == 1.0
+    machine.idle_cores = 0.0                               # a busy process takes the idle core too
+    for _ in range(200):
+        machine.work(governor, 0.010)
+    assert governor.degraded and not governor.optional_allowed()
+    machine.idle_cores = 0.15                              # between the floor and twice it: still degraded
+    for _ in range(200):
+        machine.work(governor, 0.010)
+    assert governor.degraded
+    machine.idle_cores = 0.3                               # the busy process has gone
+    for _ in range(200):
+        machine.work(governor, 0.010)
+    assert not governor.degraded and governor.optional_allowed()
+
+
+def test_the_machine_idle_time_is_read_where_the_system_gives_it():
+    idle = machine_idle_seconds()
+    if not Path("/proc/stat").exists():
+        assert idle is None
+        return
+    time.sleep(0.05)
+    assert idle is not None and machine_idle_seconds() >= idle >= 0
 
 
 def test_one_slow_start_up_frame_does_not_decide_the_state_alone():

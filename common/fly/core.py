@@ -62,20 +62,22 @@ class EvolverServiceConfig:
         "help": "evolve between frames only while the last second's CPU is under this fraction of a core"})
     degraded_share: float = field(default=0.6, metadata={
         "help": "run degraded (no evolution between frames, shorter settles) below this share of the CPU asked for"})
+    free_cpu_floor: float = field(default=0.1, metadata={
+        "help": "run degraded only while the machine has less than this much of a core idle"})
     sonar_weight: float = field(default=0.0, metadata={"help": "weight of the sonar fitness term (0 = off)"})
     seed: int = field(default=0, metadata={"help": "random seed of the evolver"})
 
     def __post_init__(self):
-        if not 0 <= self.cpu_budget <= 1 or not 0 < self.degraded_share <= 1:
-            raise ValueError(f"cpu_budget must be in [0, 1] and degraded_share in (0, 1], got {self.cpu_budget} "
-                             f"and {self.degraded_share}")
+        if not 0 <= self.cpu_budget <= 1 or not 0 < self.degraded_share <= 1 or not self.free_cpu_floor >= 0:
+            raise ValueError(f"cpu_budget must be in [0, 1], degraded_share in (0, 1] and free_cpu_floor >= 0, got "
+                             f"{self.cpu_budget}, {self.degraded_share} and {self.free_cpu_floor}")
 
     def settle_policy(self) -> SettlePolicy:
         return SettlePolicy(self.settle_ms / 1000, self.min_generations, self.recovery)
 
     def governor(self) -> CpuGovernor:
         return CpuGovernor(budget=self.cpu_budget, degraded_below=self.degraded_share,
-                           recovered_above=min(1.0, self.degraded_share + 0.15))
+                           recovered_above=min(1.0, self.degraded_share + 0.15), free_floor=self.free_cpu_floor)
 
 
 @dataclass

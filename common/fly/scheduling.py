@@ -10,6 +10,7 @@ does not give it the CPU it asks for (the pipeline then runs degraded).
 """
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -59,6 +60,23 @@ def settle(evolver, reference: float | None, policy: SettlePolicy, clock=time.mo
     return generations
 
 
+def machine_idle_seconds() -> float | None:
+    """CPU-seconds the whole machine has been idle since boot, summed over its cores (Linux /proc/stat:
+    idle + iowait), or None where that is not available."""
+    try:
+        with open("/proc/stat") as fh:
+            fields = fh.readline().split()
+        return (int(fields[4]) + int(fields[5])) / _CLOCK_TICKS
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+try:
+    _CLOCK_TICKS = float(os.sysconf("SC_CLK_TCK"))
+except (AttributeError, ValueError, OSError):
+    _CLOCK_TICKS = 100.0
+
+
 class CpuGovernor:
     """How much of a core the evolver gets and may spend: the basis of graceful degradation.
 
@@ -66,9 +84,14 @@ class CpuGovernor:
     and records its CPU time (``thread_clock``) and wall time. From them:
 
     * ``share``: CPU / wall time of recent work (exponentially smoothed), ≈ 1 when the evolver gets the
-      core it asks for, ~0.5 when another busy process shares that core. Below ``degraded_below`` the
-      machine is overloaded and ``degraded`` is set; it clears above ``recovered_above`` (hysteresis, so
-      it does not flicker).
+      core it asks for, ~0.5 when another busy process shares that core.
+    * ``free``: the machine's idle CPU over the last ``window_s`` (in cores, from ``idle_clock``: the
+      machine's cumulative idle CPU-seconds, or None where unknown).
+    * ``degraded``: the machine is overloaded — the evolver's share is under ``degraded_below`` *and*
+      less than ``free_floor`` of a core is idle. A low share alone is not overload: on a busy 2-core
+      machine with idle time left, a thread often waits a moment for a core (where the idle time is
+      unknown, the share alone decides). It clears (hysteresis, so it does not flicker) once the share
+      is above ``recovered_above`` or twice ``free_floor`` is idle.
     * ``spent``: the CPU time of the last ``window_s`` seconds, in fractions of one core.
       ``optional_allowed()`` — evolving between frames, which only polishes the population — is true
       while ``spent`` is under ``budget`` and the machine is not overloaded: the frames' own work always
@@ -78,19 +101,21 @@ class CpuGovernor:
     """
 
     def __init__(self, budget: float = 0.35, degraded_below: float = 0.6, recovered_above: float = 0.75,
-                 window_s: float = 1.0, smoothing: float = 0.1, thread_clock=time.thread_time,
-                 clock=time.monotonic):
+                 free_floor: float = 0.1, window_s: float = 1.0, smoothing: float = 0.1,
+                 thread_clock=time.thread_time, clock=time.monotonic, idle_clock=machine_idle_seconds):
         if not 0 <= budget <= 1 or not 0 < degraded_below <= recovered_above <= 1 or window_s <= 0 \
-                or not 0 < smoothing <= 1:
-            raise ValueError(f"budget in [0, 1], 0 < degraded_below <= recovered_above <= 1, window_s > 0 and "
-                             f"smoothing in (0, 1] expected, got {budget}, {degraded_below}, {recovered_above}, "
-                             f"{window_s}, {smoothing}")
+                or not 0 < smoothing <= 1 or free_floor < 0:
+            raise ValueError(f"budget in [0, 1], 0 < degraded_below <= recovered_above <= 1, free_floor >= 0, "
+                             f"window_s > 0 and smoothing in (0, 1] expected, got {budget}, {degraded_below}, "
+                             f"{recovered_above}, {free_floor}, {window_s}, {smoothing}")
         self.budget, self.degraded_below, self.recovered_above = budget, degraded_below, recovered_above
-        self.window_s, self.smoothing = window_s, smoothing
-        self._thread_clock, self._clock = thread_clock, clock
+        self.free_floor, self.window_s, self.smoothing = free_floor, window_s, smoothing
+        self._thread_clock, self._clock, self._idle_clock = thread_clock, clock, idle_clock
         self.share = 1.0
+        self.free: float | None = None
         self.degraded = False
         self._recent: list[tuple[float, float]] = []    # (end time, CPU s) of the window's busy stretches
+        self._idle_samples: list[tuple[float, float]] = []   # (time, machine idle CPU-s), one per 0.1 s at most
 
     @contextmanager
     def work(self):
@@ -105,14 +130,32 @@ class CpuGovernor:
         now = self._clock()
         self._recent.append((now, cpu_s))
         self._forget(now)
+        self._sample_idle(now)
         if wall_s > 1e-4:     # a stretch too short to time says nothing about the share
             # Weighted by duration: a long stretch says more about the machine than a short one.
             a = min(0.3, self.smoothing * wall_s / 0.002)
             self.share += a * (min(cpu_s / wall_s, 1.0) - self.share)
-        if self.degraded and self.share > self.recovered_above:
+        idle_left = self.free is not None and self.free >= self.free_floor   # unknown: the share decides
+        if self.degraded and (self.share > self.recovered_above
+                              or (self.free is not None and self.free >= 2 * self.free_floor)):
             self.degraded = False
-        elif not self.degraded and self.share < self.degraded_below:
+        elif not self.degraded and self.share < self.degraded_below and not idle_left:
             self.degraded = True
+
+    def _sample_idle(self, now: float) -> None:
+        """Machine idle cores over the window (``free``), from samples at most 0.1 s apart."""
+        if self._idle_clock is None or (self._idle_samples and now - self._idle_samples[-1][0] < 0.1):
+            return
+        idle = self._idle_clock()
+        if idle is None:
+            self._idle_clock = None
+            return
+        self._idle_samples.append((now, idle))
+        while len(self._idle_samples) > 2 and now - self._idle_samples[1][0] >= self.window_s:
+            self._idle_samples.pop(0)
+        (t0, i0), (t1, i1) = self._idle_samples[0], self._idle_samples[-1]
+        if t1 - t0 >= 0.5 * self.window_s:
+            self.free = max(0.0, (i1 - i0) / (t1 - t0))
 
     def _forget(self, now: float) -> None:
         cut = now - self.window_s
