@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.geometry import invert, orthonormalised, planar_from_transform, transform_points
+from common.geometry import invert, orthonormalised, planar_from_transform, planar_pose, transform_points
 from common.slam.posegraph import PoseGraph, PoseGraphError, planar_covariance
 
 _MIN_SIGMA = (0.005, np.deg2rad(0.05))    # floor on a factor's position (m) and rotation (rad) sigma
@@ -94,23 +94,34 @@ class KeyframeGraph:
             cov[2, 2] = cov[3, 3] = cov[4, 4] = 1e-2
         return cov
 
+    def _node_pose(self, T_map_base: np.ndarray) -> np.ndarray:
+        """A pose as the graph holds it: levelled (z 0, no roll or pitch) in a planar graph.  The front
+        end's 6-DoF fixes wander a few cm and tenths of a degree off the plane; factors built from them
+        would contradict the planar priors by tens of their tight z/roll/pitch sigmas, and the robust
+        kernel would then discount the whole factor, x, y and yaw included, leaving a keyframe free to
+        swing metres away."""
+        return planar_pose(*planar_from_transform(T_map_base)) if self.planar else orthonormalised(T_map_base)
+
+    def _relative(self, T_map_i: np.ndarray, T_map_j: np.ndarray) -> np.ndarray:
+        return orthonormalised(invert(self._node_pose(T_map_i)) @ self._node_pose(T_map_j))
+
     def add(self, kf, registered_to: list[int] = (), fix_cov: np.ndarray | None = None) -> None:
         """A new keyframe (initialised at its registered pose) with its odometry and registration factors."""
         self.archive[kf.id] = kf
-        T0 = orthonormalised(kf.T_map_base)
+        T0 = self._node_pose(kf.T_map_base)
         self.graph.add_keyframe(kf.id, T0)
         if self._last_id is None:
             self.graph.add_prior(kf.id, T0, np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
         else:
             prev = self.archive[self._last_id]
-            T = orthonormalised(invert(prev.T_map_base) @ kf.T_map_base)
+            T = self._relative(prev.T_map_base, kf.T_map_base)
             self.graph.add_odometry(prev.id, kf.id, T, self._odometry_cov(T))
             if fix_cov is not None:
                 cov = self._body_cov(fix_cov, kf.T_map_base)
                 for i in registered_to:
                     if i in self.archive and i != kf.id:
-                        self.graph.add_registration(
-                            i, kf.id, orthonormalised(invert(self.archive[i].T_map_base) @ kf.T_map_base), cov)
+                        self.graph.add_registration(i, kf.id, self._relative(self.archive[i].T_map_base,
+                                                                             kf.T_map_base), cov)
         self._last_id = kf.id
 
     def loop_candidate(self, kf, exclude: set[int]):
@@ -130,8 +141,7 @@ class KeyframeGraph:
         return best
 
     def add_loop(self, old, kf, T_map_base_new: np.ndarray, cov_body: np.ndarray) -> int:
-        return self.graph.add_registration(old.id, kf.id, orthonormalised(invert(old.T_map_base) @ T_map_base_new),
-                                           cov_body)
+        return self.graph.add_registration(old.id, kf.id, self._relative(old.T_map_base, T_map_base_new), cov_body)
 
     # ------------------------------------------------------------------------ optimising
     def optimise(self, newest_id: int, batch: bool = False) -> np.ndarray:
@@ -184,7 +194,7 @@ class KeyframeGraph:
         old_edges = list(self.graph.edges().values())
         graph = PoseGraph(robust="cauchy", planar=self.planar)
         for k in kept:
-            graph.add_keyframe(k, orthonormalised(self.archive[k].T_map_base))
+            graph.add_keyframe(k, self._node_pose(self.archive[k].T_map_base))
         linked = set()
         has_prior = False
         for e in old_edges:
@@ -195,10 +205,10 @@ class KeyframeGraph:
             linked.add((min(e.i, e.j), max(e.i, e.j)))
         for a, b in zip(kept[:-1], kept[1:]):
             if (a, b) not in linked:
-                T = orthonormalised(invert(self.archive[a].T_map_base) @ self.archive[b].T_map_base)
+                T = self._relative(self.archive[a].T_map_base, self.archive[b].T_map_base)
                 graph.add_odometry(a, b, T, self._odometry_cov(T))
         if not has_prior and kept:
-            graph.add_prior(kept[0], orthonormalised(self.archive[kept[0]].T_map_base),
+            graph.add_prior(kept[0], self._node_pose(self.archive[kept[0]].T_map_base),
                             np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
         for k in drop:
             kf = self.archive.pop(k)
