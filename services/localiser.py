@@ -230,7 +230,8 @@ def publish(node, out: LocaliserOutput, pop: m.FlyPopulation, pose_pub, tf_pub) 
     node.counters.add("registrations_ok" if out.estimate.registered else "registrations_rejected")
     node.counters.add("keyframes", int(out.estimate.keyframe_added))
     pose_pub.publish(out.pose)
-    tf_pub.publish(out.map_to_odom)
+    if out.map_to_odom is not None:      # none before the map's first keyframe
+        tf_pub.publish(out.map_to_odom)
     node.progress += 1
 
 

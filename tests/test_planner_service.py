@@ -43,8 +43,32 @@ def _core() -> PlannerCore:
     core = PlannerCore(PlannerConfig(), PlannerServiceConfig(extent=(-1.0, -2.0, 6.0, 2.0), solve_ms=200.0))
     core.on_calibration(m.calibration_to_msg(StereoCalibration.ideal(320, 240, T_base_camera=T_BASE_CAMERA), 1, 1))
     core.on_pose(m.pose_msg(planar_pose(0.0, 0.0, 0.0), stamp_ns=10**8, status="ok"))
+    core.on_map_to_odom(_identity_map_to_odom())
     core.on_target(m.Target(x=4.0, y=0.0, radius_m=0.3))
     return core
+
+
+def _identity_map_to_odom() -> m.TransformMsg:
+    return m.TransformMsg(child_frame_id=m.ODOM, translation=np.zeros(3), rotation=np.array([0.0, 0.0, 0.0, 1.0]),
+                          header=m.header(0, 10**8, m.MAP))
+
+
+def test_the_robot_stays_still_until_the_localiser_has_a_map():
+    core = _core()
+    core.map_to_odom = None                      # a pose from odometry, but no map yet
+    for _ in range(20):
+        cmd = core.cycle(10**8)
+    assert cmd.stop and cmd.reason == "waiting for the localiser's map", cmd
+    core.on_map_to_odom(_identity_map_to_odom())
+    cmd, _ = _heading_after(core)
+    assert not cmd.stop and cmd.linear_mps > 0, cmd
+    alone = PlannerCore(PlannerConfig(), PlannerServiceConfig(extent=(-1.0, -2.0, 6.0, 2.0), solve_ms=200.0,
+                                                              wait_for_map=False))
+    alone.on_calibration(core.calibration)
+    alone.on_pose(core.pose)
+    alone.on_target(core.target)
+    cmd, _ = _heading_after(alone)
+    assert not cmd.stop and cmd.linear_mps > 0, cmd
 
 
 def _heading_after(core: PlannerCore) -> tuple[m.VelocityCommand, np.ndarray]:
@@ -81,10 +105,11 @@ def test_planner_service_steers_towards_the_target_and_publishes_its_field(tmp_p
             assert cmds[-1].stop and cmds[-1].reason == "no pose"
             calib = StereoCalibration.ideal(320, 240, T_base_camera=T_BASE_CAMERA)
             node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
-            poses = node.publisher("fusion/pose")
+            poses, transforms = node.publisher("fusion/pose"), node.publisher("slam/map_to_odom")
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and not (cmds and cmds[-1].reason == "following field"):
                 poses.publish(m.pose_msg(planar_pose(0.0, 0.0, 0.0), stamp_ns=time.time_ns(), status="ok"))
+                transforms.publish(_identity_map_to_odom())
                 time.sleep(0.1)
             assert cmds[-1].reason == "following field", [c.reason for c in cmds[-5:]]
             assert cmds[-1].linear_mps > 0

@@ -45,6 +45,8 @@ class PlannerServiceConfig:
         "help": "farthest camera depth (m) at which flies are evidence; the camera's view ends here"})
     fly_near: float = field(default=0.3, metadata={"help": "nearest camera depth (m) at which flies are evidence"})
     min_fitness: float = field(default=0.05, metadata={"help": "flies below this fitness are never obstacles"})
+    wait_for_map: bool = field(default=True, metadata={
+        "help": "stay still until the localiser has a map (its first slam/map_to_odom); false: drive on fusion/pose alone"})
 
     def planner_config(self, base: PlannerConfig) -> PlannerConfig:
         """``base`` with the grid set to ``extent``."""
@@ -168,6 +170,10 @@ class PlannerCore:
         self._converged_once = self._converged_once or self.report.converged
         if T_map_base is None:
             cmd = m.VelocityCommand(stop=True, reason="no pose")
+        elif self.settings.wait_for_map and self.map_to_odom is None:
+            # Driving before the map exists bakes the odometry's drift of those metres into the map's
+            # frame (the target's frame): a start-up that takes 4 s costs the whole run 3° of heading.
+            cmd = m.VelocityCommand(stop=True, reason="waiting for the localiser's map")
         elif self._current_target is not None and not self._converged_once:
             cmd = m.VelocityCommand(stop=True, reason="planning: field not converged yet")
         else:

@@ -7,7 +7,8 @@
   first population after it (later calibrations are kept for reference only: the map is in one frame).
 * ``on_odometry(stamp_ns, T_odom_base)``: the odometry prior for populations without ``T_odom_camera``.
 * ``on_population(FlyPopulation)`` → a :class:`LocaliserOutput` (``slam/pose`` PoseEstimate,
-  ``slam/map_to_odom`` TransformMsg, the Estimate) or one with ``reason`` set: a population republished
+  ``slam/map_to_odom`` TransformMsg once the map exists — before its first keyframe there is no map
+  frame to relate odom to —, the Estimate) or one with ``reason`` set: a population republished
   for a frame already localised (same ``source_seq``) is skipped, one before any calibration or a
   malformed one is refused.
 * ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``trajectory()`` the trajectory so far (as the
@@ -128,7 +129,7 @@ class LocaliserCore(LatchedInputs):
             pose=m.pose_msg(est.T_map_base, est.covariance, stamp_ns=stamp, status=est.status,
                             source_seq=pop.source_seq),
             map_to_odom=m.TransformMsg(child_frame_id=m.ODOM, translation=p, rotation=q,
-                                       header=m.header(0, stamp, m.MAP)),
+                                       header=m.header(0, stamp, m.MAP)) if loc.keyframes else None,
             estimate=est)
 
     def _bound_map(self) -> None:
