@@ -81,3 +81,15 @@ def test_the_live_planner_and_the_library_agree_on_the_robot():
     args = _parser("services.planner").parse_args([])
     assert (args.robot_radius, args.slow_clearance, args.v_max) == \
         (PlannerConfig.robot_radius, PlannerConfig.slow_clearance_m, PlannerConfig.v_max)
+
+
+def test_eval_localiser_overrides_read_as_a_user_types_them():
+    from deploy.commands.evaluate import parse_overrides
+    cfg = parse_overrides(["loop_closure=true", "photometric=False", "odometry=visual", "window=(1.0, 1.0, 0.2)",
+                           "eps=0.1"])
+    assert cfg.loop_closure is True and cfg.photometric is False and cfg.odometry == "visual"
+    assert cfg.window == (1.0, 1.0, 0.2) and cfg.eps == 0.1
+    with pytest.raises(ValueError, match="eps"):
+        parse_overrides(["eps=abc"])
+    with pytest.raises(ValueError, match="FIELD one of"):
+        parse_overrides(["no_such_field=1"])

@@ -48,21 +48,28 @@ def plot(path: Path, result, odom_in_map) -> None:
 
 
 def parse_overrides(items: list[str]):
-    """LocaliserConfig with FIELD=VALUE overrides (values parsed as Python literals)."""
+    """LocaliserConfig with FIELD=VALUE overrides: Python literals, true/false in any case, and a bare
+    word for a text field (``odometry=visual``)."""
     import ast
     import dataclasses
 
     from common.slam import LocaliserConfig
-    fields = {f.name for f in dataclasses.fields(LocaliserConfig)}
+    defaults = {f.name: f.default for f in dataclasses.fields(LocaliserConfig)}
     changes = {}
     for item in items:
         name, sep, value = item.partition("=")
-        if not sep or name not in fields:
-            raise ValueError(f"--localiser expects FIELD=VALUE with FIELD one of {', '.join(sorted(fields))}; got {item!r}")
+        if not sep or name not in defaults:
+            raise ValueError(f"--localiser expects FIELD=VALUE with FIELD one of {', '.join(sorted(defaults))}; "
+                             f"got {item!r}")
+        if value.strip().lower() in ("true", "false"):
+            changes[name] = value.strip().lower() == "true"
+            continue
         try:
             changes[name] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
-            raise ValueError(f"--localiser {name}: {value!r} is not a number, tuple or boolean") from None
+            if not isinstance(defaults[name], str):
+                raise ValueError(f"--localiser {name}: {value!r} is not a number, tuple or boolean") from None
+            changes[name] = value
     return LocaliserConfig(**changes)
 
 
