@@ -56,6 +56,8 @@ def _identity_map_to_odom() -> m.TransformMsg:
 def test_the_robot_stays_still_until_the_localiser_has_a_map():
     core = _core()
     core.map_to_odom = None                      # a pose from odometry, but no map yet
+    assert not core.on_population(_wall_population(0.5))   # the young flies are no evidence yet
+    assert not core.planner.grid.occupied().any()
     for _ in range(20):
         cmd = core.cycle(10**8)
     assert cmd.stop and cmd.reason == "waiting for the localiser's map", cmd

@@ -46,7 +46,7 @@ class PlannerServiceConfig:
     fly_near: float = field(default=0.3, metadata={"help": "nearest camera depth (m) at which flies are evidence"})
     min_fitness: float = field(default=0.05, metadata={"help": "flies below this fitness are never obstacles"})
     wait_for_map: bool = field(default=True, metadata={
-        "help": "stay still until the localiser has a map (its first slam/map_to_odom); false: drive on fusion/pose alone"})
+        "help": "stay still and fold no flies until the localiser has a map (its first slam/map_to_odom); false: use fusion/pose alone"})
 
     def planner_config(self, base: PlannerConfig) -> PlannerConfig:
         """``base`` with the grid set to ``extent``."""
@@ -125,8 +125,8 @@ class PlannerCore:
     def on_population(self, pop: m.FlyPopulation) -> bool:
         """Fold a population's fittest in-band flies into the grid; False when its pose is unknown."""
         cal, s = self.calibration, self.settings
-        if cal is None:
-            return False
+        if cal is None or (s.wait_for_map and self.map_to_odom is None):
+            return False     # before the map: flies not yet converged (the localiser waits for them too)
         T_map_cam = population_pose(pop, self.map_to_odom, self.T_map_base, cal.T_base_camera)
         if T_map_cam is None:
             return False
