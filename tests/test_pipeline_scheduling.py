@@ -160,6 +160,22 @@ def test_a_low_share_on_a_machine_with_idle_cpu_is_not_overload():
     assert not governor.degraded and governor.optional_allowed()
 
 
+def test_idle_time_that_stops_being_readable_leaves_the_share_to_decide():
+    machine = Machine()
+    readable = [True]
+    governor = CpuGovernor(budget=1.0, degraded_below=0.6, recovered_above=0.75, free_floor=0.1,
+                           thread_clock=lambda: machine.cpu, clock=lambda: machine.wall,
+                           idle_clock=lambda: machine.idle_cpu if readable[0] else None)
+    machine.share, machine.idle_cores = 0.4, 0.5
+    for _ in range(200):
+        machine.work(governor, 0.010)
+    assert governor.free == pytest.approx(0.5) and not governor.degraded
+    readable[0] = False                      # /proc/stat unreadable from now on (e.g. out of file handles)
+    for _ in range(200):
+        machine.work(governor, 0.010)
+    assert governor.free is None and governor.degraded
+
+
 def test_the_machine_idle_time_is_read_where_the_system_gives_it():
     idle = machine_idle_seconds()
     if not Path("/proc/stat").exists():

@@ -61,7 +61,8 @@ class EvolverServiceConfig:
     cpu_budget: float = field(default=0.35, metadata={
         "help": "evolve between frames only while the last second's CPU is under this fraction of a core"})
     degraded_share: float = field(default=0.6, metadata={
-        "help": "run degraded (no evolution between frames, shorter settles) below this share of the CPU asked for"})
+        "help": "run degraded (no evolution between frames, shorter settles) below this CPU share "
+                "and free_cpu_floor idle"})
     free_cpu_floor: float = field(default=0.1, metadata={
         "help": "run degraded only while the machine has less than this much of a core idle"})
     sonar_weight: float = field(default=0.0, metadata={"help": "weight of the sonar fitness term (0 = off)"})

@@ -147,8 +147,8 @@ class CpuGovernor:
         if self._idle_clock is None or (self._idle_samples and now - self._idle_samples[-1][0] < 0.1):
             return
         idle = self._idle_clock()
-        if idle is None:
-            self._idle_clock = None
+        if idle is None:      # no longer readable: unknown from now on (a stale ``free`` would never degrade)
+            self._idle_clock, self.free = None, None
             return
         self._idle_samples.append((now, idle))
         while len(self._idle_samples) > 2 and now - self._idle_samples[1][0] >= self.window_s:
