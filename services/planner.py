@@ -48,6 +48,9 @@ def body(node, args) -> int:
         core.on_target(m.Target(x=settings.target[0], y=settings.target[1], radius_m=settings.target_radius))
     else:
         target = node.latched(S.PLANNER_TARGET, retry_s=float("inf"))   # a target may never come: ask once
+    # A restarted planner takes the map->odom the supervisor latches, or it would wait for the
+    # localiser's next one (none while that is restarting or relocalising too).
+    map_to_odom = node.latched(S.SLAM_MAP_TO_ODOM, retry_s=float("inf"))
     populations = node.subscribe_latest(S.FLIES_POPULATION)
     cmd_pub, field_pub = node.publisher(S.PLANNER_CMD_VEL), node.publisher(S.PLANNER_FIELD)
     last_field, last_reason = 0.0, ""
@@ -56,6 +59,8 @@ def body(node, args) -> int:
         if target is not None and target.get() is not None:
             with survive(node, "target", log):
                 core.on_target(target.get())
+        if core.map_to_odom is None and map_to_odom.get() is not None:
+            core.on_map_to_odom(map_to_odom.get())
         if calibration.get() is not None:
             with survive(node, "calibration", log):
                 core.on_calibration(calibration.get())

@@ -122,3 +122,25 @@ def test_planner_service_steers_towards_the_target_and_publishes_its_field(tmp_p
     finally:
         if proc.poll() is None:
             stop(proc)
+
+
+def test_a_restarted_planner_takes_the_latched_map_to_odom(tmp_path, zenoh_port):
+    """The supervisor latches slam/map_to_odom: a planner started after it was published drives on
+    without waiting for the localiser's next one."""
+    with Node("latch-holder", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+        node.publisher("slam/map_to_odom", latched=True).publish(_identity_map_to_odom())
+        proc = start_module("services.planner", "--extent", "-1", "-2", "6", "2", "--target", "4", "0",
+                            port=zenoh_port, log_path=tmp_path / "planner.log")
+        cmds = []
+        try:
+            node.subscribe("planner/cmd_vel", m.VelocityCommand, cmds.append)
+            calib = StereoCalibration.ideal(320, 240, T_base_camera=T_BASE_CAMERA)
+            node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
+            poses = node.publisher("fusion/pose")
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not (cmds and cmds[-1].reason == "following field"):
+                poses.publish(m.pose_msg(planar_pose(0.0, 0.0, 0.0), stamp_ns=time.time_ns(), status="ok"))
+                time.sleep(0.1)
+            assert cmds and cmds[-1].reason == "following field", [c.reason for c in cmds[-5:]]
+        finally:
+            stop(proc)
