@@ -150,9 +150,11 @@ class FlyLocaliser:
                        if calibration is not None and self.config.use_stereo_model else None)
         self._driven_since_fix = 0.0
         self._turned_since_fix = 0.0
+        self._fast_turn_since_fix = 0.0  # signed odometry yaw (rad) turned faster than max_turn_rate_radps
         self._last_fix_stamp: int | None = None
         self._updates_since_fix = 0      # the constant-velocity prediction's uncertainty grows with it
         self.graph_failures = 0          # pose-graph solves that failed (the front end carried on)
+        self.slips_undone = 0            # fixes that took the prediction without a too-fast odometry turn
         self._pinned_hint = np.zeros(3, bool)      # see LocaliserConfig.tracking_recheck_pinned
         self._pinned_streak = 0
         self._last_odom: np.ndarray | None = None
@@ -405,7 +407,7 @@ class FlyLocaliser:
         self._reference = None
         self._last_fix_stamp = stamp_ns
         self._updates_since_fix = 0
-        self._driven_since_fix = self._turned_since_fix = 0.0
+        self._driven_since_fix = self._turned_since_fix = self._fast_turn_since_fix = 0.0
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
             self.T_map_odom = T_map_base @ invert(T_odom_base)
@@ -424,10 +426,13 @@ class FlyLocaliser:
                 # motion, and counting it as turning tripped the turn-rate limit after every fix.
                 rel = invert(self._last_odom) @ T_odom_base
                 self._driven_since_fix += float(np.linalg.norm(rel[:2, 3]))
-                turned = abs(float(np.arctan2(rel[1, 0], rel[0, 0])))
+                yaw = float(np.arctan2(rel[1, 0], rel[0, 0]))
+                turned = abs(yaw)
                 self._turned_since_fix += turned
                 dt = (stamp_ns - self._last_odom_stamp) * 1e-9
                 self._turn_rate = turned / dt if dt > 1e-3 else self._turn_rate
+                if self._turn_rate > self.config.max_turn_rate_radps:
+                    self._fast_turn_since_fix += yaw
             self._last_odom, self._last_odom_stamp = T_odom_base.copy(), stamp_ns
             return T, "odometry"
         tr = self._track
@@ -505,6 +510,7 @@ class FlyLocaliser:
             self._last_fix_stamp = stamp_ns
             self._driven_since_fix = 0.0
             self._turned_since_fix = 0.0
+            self._fast_turn_since_fix = 0.0
             return finish(T_map_base, "ok", True, cov, delta, links=links)
 
         if not self.keyframes and generation is not None and generation < c.min_generations:
@@ -526,6 +532,8 @@ class FlyLocaliser:
                                                         search=source == "none")
             if fix is None and source == "constant velocity":
                 fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
+            if source == "odometry" and self._fast_turn_since_fix:
+                fix = self._slip_hypothesis(new_pyramid, T_pred, fix)
             if fix is not None:
                 return fixed(fix.T_map_base, fix.covariance)
         if len(points) < c.min_flies:
@@ -606,6 +614,19 @@ class FlyLocaliser:
             return None, why
         why = self._implausible(T_pred, fix.T_map_base, source)
         return (None, f"photometric fix {why}") if why else (fix, "")
+
+    def _slip_hypothesis(self, new_pyramid, T_pred: np.ndarray, fix):
+        """The better of ``fix`` (from the odometry's prediction) and a fix from the prediction without
+        the turn the odometry reported faster than ``max_turn_rate_radps`` since the last fix: a wheel
+        spinning on a slippery patch reports a turn that never happened, and tracking from a heading
+        5-10° off then settles in a wrong minimum that every later fix inherits.  The alternative is
+        held to the prior around its own prediction; it wins on the larger share of inliers."""
+        T_unslipped = T_pred @ planar_pose(0.0, 0.0, -self._fast_turn_since_fix)
+        alt, _ = self._photometric(new_pyramid, T_unslipped, T_unslipped, "odometry")
+        if alt is not None and (fix is None or alt.inliers > fix.inliers):
+            self.slips_undone += 1
+            return alt
+        return fix
 
     def _implausible(self, T_pred: np.ndarray, T_fix: np.ndarray, source: str) -> str:
         """Why a fix is too far from the prediction to believe ('' when it is not).  With odometry: 4 σ
