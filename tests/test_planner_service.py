@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from common import messages as m
 from common.bus import BusOptions, Node
@@ -144,3 +145,30 @@ def test_a_restarted_planner_takes_the_latched_map_to_odom(tmp_path, zenoh_port)
             assert cmds and cmds[-1].reason == "following field", [c.reason for c in cmds[-5:]]
         finally:
             stop(proc)
+
+
+def _lone_fly(seq: int, x_cam: float = 0.0) -> m.FlyPopulation:
+    """A population whose only fly in the height band sits 0.8 m ahead of the camera (at 0.3 m above the
+    floor), the rest far overhead."""
+    pts = np.array([[x_cam, 0.15, 0.8]] + [[0.0, -3.0, 3.0]] * 50, np.float32)
+    return m.FlyPopulation(positions=pts, fitness=np.full(len(pts), 0.5, np.float32), generation=500,
+                           source_seq=seq, T_odom_camera=T_BASE_CAMERA.copy(),
+                           header=m.header(0, seq * 10**8, m.CAMERA_LEFT_OPTICAL))
+
+
+def test_a_standing_robot_re_reporting_one_fly_does_not_make_it_an_obstacle():
+    """A population republished 10 times a second from the same place is the same view: one fly stuck at
+    a wrong depth stays weak evidence; a surface of flies is still an obstacle."""
+    core = _core()
+    for seq in range(1, 51):                     # 5 s standing, the same lone fly every 0.1 s
+        core.on_population(_lone_fly(seq))
+    assert not core.planner.grid.occupied().any()
+    wall = _core()
+    for seq in range(1, 51):
+        wall.on_population(_wall_population(0.5, seq))
+    assert wall.planner.grid.occupied().sum() > 20
+
+
+def test_new_view_settings_must_be_positive():
+    with pytest.raises(ValueError, match="new_view"):
+        PlannerServiceConfig(new_view_s=0.0)

@@ -17,7 +17,7 @@ import numpy as np
 
 from common import messages as m
 from common.fly.selection import fittest
-from common.geometry import planar_from_transform, transform_points
+from common.geometry import planar_from_transform, so3_log, transform_points
 from common.planning.config import Command, PlannerConfig, SensorView, SolveReport
 from common.planning.planner import HarmonicPlanner
 
@@ -45,8 +45,18 @@ class PlannerServiceConfig:
         "help": "farthest camera depth (m) at which flies are evidence; the camera's view ends here"})
     fly_near: float = field(default=0.3, metadata={"help": "nearest camera depth (m) at which flies are evidence"})
     min_fitness: float = field(default=0.05, metadata={"help": "flies below this fitness are never obstacles"})
+    new_view_m: float = field(default=0.1, metadata={
+        "help": "a population counts as a whole new view of the flies once the camera moved this far (m), ..."})
+    new_view_deg: float = field(default=5.0, metadata={"help": "... or turned this much (deg), ..."})
+    new_view_s: float = field(default=2.0, metadata={
+        "help": "... or this long (s) passed since the last population; less of any: evidence in proportion"})
     wait_for_map: bool = field(default=True, metadata={
         "help": "stay still and fold no flies until the localiser has a map (its first slam/map_to_odom); false: use fusion/pose alone"})
+
+    def __post_init__(self):
+        if not min(self.new_view_m, self.new_view_deg, self.new_view_s) > 0:
+            raise ValueError(f"new_view_m, new_view_deg and new_view_s must be > 0, got {self.new_view_m}, "
+                             f"{self.new_view_deg} and {self.new_view_s}")
 
     def planner_config(self, base: PlannerConfig) -> PlannerConfig:
         """``base`` with the grid set to ``extent``."""
@@ -100,6 +110,7 @@ class PlannerCore:
         self._current_target: tuple[float, float, float] | None = None
         self._converged_once = False      # the descent direction of a field never converged can point anywhere
         self._last_sonar_seq: int | None = None
+        self._last_view: tuple[np.ndarray, int] | None = None   # camera pose and stamp of the last population folded
 
     # Latest-value inputs (single assignments: safe from a subscription thread).
     def on_pose(self, msg: m.PoseEstimate) -> None:
@@ -135,8 +146,24 @@ class PlannerCore:
         keep = keep[(depth >= s.fly_near) & (depth <= s.fly_range)]
         self.planner.update_flies(transform_points(T_map_cam, pop.positions[keep].astype(np.float64)),
                                   pop.fitness[keep], pop.header.stamp_ns,
-                                  view=camera_view(T_map_cam, cal, s.fly_near, s.fly_range))
+                                  view=camera_view(T_map_cam, cal, s.fly_near, s.fly_range),
+                                  weight=self._view_novelty(T_map_cam, pop.header.stamp_ns))
         return True
+
+    def _view_novelty(self, T_map_cam: np.ndarray, stamp_ns: int) -> float:
+        """How much of a new view this population is, in [0, 1]: the camera's motion since the last one
+        folded, against new_view_m / new_view_deg / new_view_s.  A population republished 10 times a
+        second from a standing robot re-reports the same flies: counted whole, one fly stuck at a wrong
+        depth became an obstacle within a second; a surface seen from moving viewpoints is evidence."""
+        s, last = self.settings, self._last_view
+        self._last_view = (T_map_cam.copy(), stamp_ns)
+        if last is None:
+            return 1.0
+        T0, t0 = last
+        moved = float(np.linalg.norm(T_map_cam[:3, 3] - T0[:3, 3]))
+        turned = math.degrees(float(np.linalg.norm(so3_log(T0[:3, :3].T @ T_map_cam[:3, :3]))))
+        waited = max(0.0, (stamp_ns - t0) * 1e-9)
+        return float(min(1.0, max(moved / s.new_view_m, turned / s.new_view_deg, waited / s.new_view_s)))
 
     def _apply_target(self) -> None:
         tgt = self.target

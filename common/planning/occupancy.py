@@ -97,10 +97,12 @@ class EvidenceGrid:
         np.minimum(layer.values, np.float32(self.cfg.evidence_cap), out=layer.values)
         self.version += 1
 
-    def add_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None) -> int:
+    def add_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None,
+                  weight: float = 1.0) -> int:
         """Add flies ((N, 3) map-frame points, (N,) fitness).  ``view``: where the camera looked (see the
-        module docstring); without it all fly evidence decays alike.  Returns how many flies fell in the
-        height band and inside the grid."""
+        module docstring); without it all fly evidence decays alike.  ``weight`` scales this population's
+        evidence (how new its viewpoint is).  Returns how many flies fell in the height band and inside
+        the grid."""
         pts = np.asarray(points_map, dtype=np.float64)
         fit = np.asarray(fitness, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -113,7 +115,7 @@ class EvidenceGrid:
         if not ok.any():
             self.version += 1
             return 0
-        w = fit[ok] / fit[ok].mean()
+        w = float(weight) * fit[ok] / fit[ok].mean()
         self._add(self._flies, pts[ok, :2], w)
         return int(self.cells_of(pts[ok, :2])[2].sum())
 

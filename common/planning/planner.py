@@ -69,11 +69,13 @@ class HarmonicPlanner:
         self._target = None
         self._target_version += 1
 
-    def update_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None) -> int:
+    def update_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None,
+                     weight: float = 1.0) -> int:
         """Fold a fly population ((N, 3) map-frame points, (N,) fitness) into the occupancy evidence.
         ``view`` (where the camera looked, map frame): old evidence is forgotten quickly only inside it,
-        slowly elsewhere (see occupancy.py); without it, everywhere at the same rate."""
-        return self.grid.add_flies(points_map, fitness, stamp_ns, view)
+        slowly elsewhere (see occupancy.py); without it, everywhere at the same rate.  ``weight`` scales
+        the population's evidence."""
+        return self.grid.add_flies(points_map, fitness, stamp_ns, view, weight)
 
     def update_sonar(self, points_xy, stamp_ns: int, view: SensorView | None = None) -> None:
         """Fold sonar echoes ((M, 2) map-frame x, y; M may be 0) into the occupancy evidence.  ``view``: the
