@@ -70,6 +70,7 @@ class LocaliserConfig:
     use_stereo_model: bool = True       # δ with depth-uncertainty and footprint weights (StereoModel)
     min_view_coverage: float = 0.5      # a view the map covers less than this gets a keyframe even unregistered
     max_turn_rate_radps: float = np.deg2rad(20.0)   # turning faster (wheels): neither register nor add keyframes
+    max_slip_rad: float = np.deg2rad(15.0)   # a faster turn up to this large may be a wheel slipping (see _slip_hypothesis)
     tracking_gap_s: float = 0.25        # within this of a fix δ searches from one seed at the prediction
     tracking_max_turn_rate_radps: float = np.deg2rad(5.0)   # ... and not while turning faster than this
     tracking_recheck_pinned: int = 10   # axes pinned on the window's edge are tried free again this often
@@ -532,7 +533,7 @@ class FlyLocaliser:
                                                         search=source == "none")
             if fix is None and source == "constant velocity":
                 fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
-            if source == "odometry" and self._fast_turn_since_fix:
+            if source == "odometry" and 0 < abs(self._fast_turn_since_fix) <= c.max_slip_rad:
                 fix = self._slip_hypothesis(new_pyramid, T_pred, fix)
             if fix is not None:
                 return fixed(fix.T_map_base, fix.covariance)
@@ -620,7 +621,10 @@ class FlyLocaliser:
         the turn the odometry reported faster than ``max_turn_rate_radps`` since the last fix: a wheel
         spinning on a slippery patch reports a turn that never happened, and tracking from a heading
         5-10° off then settles in a wrong minimum that every later fix inherits.  The alternative is
-        held to the prior around its own prediction; it wins on the larger share of inliers."""
+        held to the prior around its own prediction; it wins on the larger share of inliers.  Only for
+        turns up to ``max_slip_rad``: a real fast turn of 90° (a scripted corner) leaves the reference
+        view behind, so the odometry's fix fails for want of overlap, and an alternative facing the old
+        way would win by default."""
         T_unslipped = T_pred @ planar_pose(0.0, 0.0, -self._fast_turn_since_fix)
         alt, _ = self._photometric(new_pyramid, T_unslipped, T_unslipped, "odometry")
         if alt is not None and (fix is None or alt.inliers > fix.inliers):
