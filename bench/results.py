@@ -110,6 +110,18 @@ KEY_FIGURES: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("warm update at 400²", "warm_update_ms.400x400", "ms"),
         ("cold solve at 400²", "full_solve_ms.400x400", "ms"),
     ]),
+    "demo": ("closed-loop demo (every other run beside a CPU hog, wheel-slip bursts), the loop, a kidnap", [
+        ("runs", "runs", ""),
+        ("reached", "reached", ""),
+        ("with a hog", "runs_with_hog", ""),
+        ("reached", "reached_with_hog", ""),
+        ("loop ATE", "loop_ate_pct_of_path", "%"),
+        ("without closure", "loop_ate_pct_without_closure", "%"),
+        ("loop final error", "loop_final_error_m", "m"),
+        ("kidnapped: relocalised", "kidnapped_relocalised", ""),
+        ("of", "kidnapped_trials", ""),
+        ("registration NEES", "registration_nees", ""),
+    ]),
     "fusion": ("sonar term on the texture-poor corridor; 20 m corridor in lockstep", [
         ("flies on a surface with sonar", "surface_fraction_with_sonar", "share"),
         ("without", "surface_fraction_without_sonar", "share"),
