@@ -60,6 +60,12 @@ def settle(evolver, reference: float | None, policy: SettlePolicy, clock=time.mo
     return generations
 
 
+try:
+    _CLOCK_TICKS = float(os.sysconf("SC_CLK_TCK"))
+except (AttributeError, ValueError, OSError):
+    _CLOCK_TICKS = 100.0
+
+
 def machine_idle_seconds() -> float | None:
     """CPU-seconds the whole machine has been idle since boot, summed over its cores (Linux /proc/stat:
     idle + iowait), or None where that is not available."""
@@ -69,12 +75,6 @@ def machine_idle_seconds() -> float | None:
         return (int(fields[4]) + int(fields[5])) / _CLOCK_TICKS
     except (OSError, ValueError, IndexError):
         return None
-
-
-try:
-    _CLOCK_TICKS = float(os.sysconf("SC_CLK_TCK"))
-except (AttributeError, ValueError, OSError):
-    _CLOCK_TICKS = 100.0
 
 
 class CpuGovernor:
