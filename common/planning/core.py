@@ -50,6 +50,10 @@ class PlannerServiceConfig:
     new_view_deg: float = field(default=5.0, metadata={"help": "... or turned this much (deg), ..."})
     new_view_s: float = field(default=2.0, metadata={
         "help": "... or this long (s) passed since the last population; less of any: evidence in proportion"})
+    view_cell_cap: float = field(default=1.5, metadata={
+        "help": "most evidence one whole view adds to a grid cell; below the planner's occupied_weight (2), so "
+                "no single view makes an obstacle: the Parisian population breeds tight clusters of near-copies "
+                "of one fly, and one wrong match copied 16 times is still one wrong match"})
     wait_for_map: bool = field(default=True, metadata={
         "help": "stay still and fold no flies until the localiser has a map (its first slam/map_to_odom); false: use fusion/pose alone"})
 
@@ -57,6 +61,9 @@ class PlannerServiceConfig:
         if not min(self.new_view_m, self.new_view_deg, self.new_view_s) > 0:
             raise ValueError(f"new_view_m, new_view_deg and new_view_s must be > 0, got {self.new_view_m}, "
                              f"{self.new_view_deg} and {self.new_view_s}")
+        if not (isinstance(self.view_cell_cap, (int, float)) and math.isfinite(self.view_cell_cap)
+                and self.view_cell_cap > 0):
+            raise ValueError(f"view_cell_cap must be a positive number, got {self.view_cell_cap!r}")
 
     def planner_config(self, base: PlannerConfig) -> PlannerConfig:
         """``base`` with the grid set to ``extent``."""
@@ -147,7 +154,8 @@ class PlannerCore:
         self.planner.update_flies(transform_points(T_map_cam, pop.positions[keep].astype(np.float64)),
                                   pop.fitness[keep], pop.header.stamp_ns,
                                   view=camera_view(T_map_cam, cal, s.fly_near, s.fly_range),
-                                  weight=self._view_novelty(T_map_cam, pop.header.stamp_ns))
+                                  weight=self._view_novelty(T_map_cam, pop.header.stamp_ns),
+                                  cell_cap=s.view_cell_cap)
         return True
 
     def _view_novelty(self, T_map_cam: np.ndarray, stamp_ns: int) -> float:

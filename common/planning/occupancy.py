@@ -12,6 +12,8 @@ the view (the walls beside the robot) stay in the map instead of opening gaps be
 """
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -88,21 +90,29 @@ class EvidenceGrid:
         inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
         return row, col, inside
 
-    def _add(self, layer: _DecayingLayer, xy: np.ndarray, weights: np.ndarray) -> None:
+    def _add(self, layer: _DecayingLayer, xy: np.ndarray, weights: np.ndarray, cell_cap: float | None = None,
+             scale: float = 1.0) -> None:
+        """Add ``weights`` at the cells of ``xy``: per cell at most ``cell_cap`` (None: no limit), then
+        times ``scale``."""
         row, col, inside = self.cells_of(xy)
         if inside.any():
             flat = row[inside] * self.shape[1] + col[inside]
             add = np.bincount(flat, weights=weights[inside], minlength=layer.values.size)
-            layer.values += add.reshape(self.shape).astype(np.float32)
+            if cell_cap is not None:
+                np.minimum(add, cell_cap, out=add)
+            layer.values += (scale * add).reshape(self.shape).astype(np.float32)
         np.minimum(layer.values, np.float32(self.cfg.evidence_cap), out=layer.values)
         self.version += 1
 
     def add_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None,
-                  weight: float = 1.0) -> int:
+                  weight: float = 1.0, cell_cap: float | None = None) -> int:
         """Add flies ((N, 3) map-frame points, (N,) fitness).  ``view``: where the camera looked (see the
         module docstring); without it all fly evidence decays alike.  ``weight`` scales this population's
-        evidence (how new its viewpoint is).  Returns how many flies fell in the height band and inside
-        the grid."""
+        evidence (how new its viewpoint is).  ``cell_cap``: the most evidence this population adds to one
+        cell before ``weight`` (None: no limit); below ``occupied_weight`` it takes two views to make an
+        obstacle.  Returns how many flies fell in the height band and inside the grid."""
+        if cell_cap is not None and not (math.isfinite(cell_cap) and cell_cap > 0):
+            raise PlannerInputError(f"cell_cap must be a positive number or None, got {cell_cap!r}")
         pts = np.asarray(points_map, dtype=np.float64)
         fit = np.asarray(fitness, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -115,8 +125,7 @@ class EvidenceGrid:
         if not ok.any():
             self.version += 1
             return 0
-        w = float(weight) * fit[ok] / fit[ok].mean()
-        self._add(self._flies, pts[ok, :2], w)
+        self._add(self._flies, pts[ok, :2], fit[ok] / fit[ok].mean(), cell_cap, float(weight))
         return int(self.cells_of(pts[ok, :2])[2].sum())
 
     def add_sonar(self, points_xy, stamp_ns: int, view: SensorView | None = None) -> None:

@@ -70,12 +70,12 @@ class HarmonicPlanner:
         self._target_version += 1
 
     def update_flies(self, points_map, fitness, stamp_ns: int, view: SensorView | None = None,
-                     weight: float = 1.0) -> int:
+                     weight: float = 1.0, cell_cap: float | None = None) -> int:
         """Fold a fly population ((N, 3) map-frame points, (N,) fitness) into the occupancy evidence.
         ``view`` (where the camera looked, map frame): old evidence is forgotten quickly only inside it,
         slowly elsewhere (see occupancy.py); without it, everywhere at the same rate.  ``weight`` scales
-        the population's evidence."""
-        return self.grid.add_flies(points_map, fitness, stamp_ns, view, weight)
+        the population's evidence; ``cell_cap`` bounds what it adds to one cell (see EvidenceGrid.add_flies)."""
+        return self.grid.add_flies(points_map, fitness, stamp_ns, view, weight, cell_cap)
 
     def update_sonar(self, points_xy, stamp_ns: int, view: SensorView | None = None) -> None:
         """Fold sonar echoes ((M, 2) map-frame x, y; M may be 0) into the occupancy evidence.  ``view``: the
