@@ -192,11 +192,26 @@ def kidnapped(trials: int, seed: int) -> dict:
     return out
 
 
+def paper_json_line(path: Path) -> str:
+    """The last line of a saved `bench/paper.py --json` output; ValueError (one line) when it holds no
+    JSON object."""
+    try:
+        lines = path.read_text(errors="replace").strip().splitlines()
+    except OSError as e:
+        raise ValueError(f"--paper-json {path}: cannot be read ({e.strerror})") from None
+    try:
+        if lines and isinstance(json.loads(lines[-1]), dict):
+            return lines[-1]
+    except ValueError:
+        pass
+    raise ValueError(f"--paper-json {path}: its last line is not a bench/paper.py --json object")
+
+
 def registration_nees(paper_json: Path | None, out: Path) -> dict:
     """NEES of bench/paper.py's registrations (headline variant, viewpoint experiment: populations from
     two trolley poses, truth from the simulator), from a saved JSON line or a --quick run."""
     if paper_json is not None:
-        line = paper_json.read_text().strip().splitlines()[-1]
+        line = paper_json_line(paper_json)
         source = f"bench/paper.py JSON read from {paper_json}"
     else:
         log("running bench/paper.py --quick --json for the registration NEES")
@@ -272,9 +287,12 @@ def main(argv=None) -> int:
     if not FLYSLAM.exists():
         print(f"bench/demo.py: {FLYSLAM} not found (run deploy/setup.sh)", file=sys.stderr)
         return 2
-    if args.paper_json is not None and not args.paper_json.exists():
-        print(f"bench/demo.py: --paper-json {args.paper_json}: no such file", file=sys.stderr)
-        return 2
+    if args.paper_json is not None:
+        try:
+            paper_json_line(args.paper_json)      # checked before the runs, not after their half hour
+        except ValueError as e:
+            print(f"bench/demo.py: {e}", file=sys.stderr)
+            return 2
     t_start = time.perf_counter()
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out_dir = args.out / stamp
