@@ -171,3 +171,70 @@ def test_a_keyframe_a_little_off_the_floor_does_not_swing_the_planar_graph():
     for i, (x0, y0, _, _, _, yaw0) in enumerate(DEMO_KEYFRAMES):
         x, y, yaw = planar_from_transform(graph.archive[i].T_map_base)
         assert np.hypot(x - x0, y - y0) < 0.01 and abs(np.rad2deg(yaw) - yaw0) < 0.1, (i, x, y, np.rad2deg(yaw))
+
+
+def _keyframe_seeing(kf_id, T_true, T_est, world, rng):
+    """A keyframe made at the (drifted) estimate T_est of a robot truly at T_true: its flies are what the
+    camera (a 35° half-angle cone) saw there, in base_link."""
+    from common.slam.localiser import Keyframe
+    cam = seen_from(T_true, world)
+    cam = cam[np.abs(cam[:, 0] / cam[:, 2]) < np.tan(np.deg2rad(35.0))]
+    cam = cam[rng.random(len(cam)) < 0.3]
+    cam = cam + rng.normal(0, 0.01, cam.shape)          # 1 cm of fly noise
+    base = (T_BASE_CAMERA[:3, :3] @ cam.T).T + T_BASE_CAMERA[:3, 3]
+    return Keyframe(kf_id, kf_id * 10**9, T_est, base.astype(np.float32), np.ones(len(base), np.float32))
+
+
+def straight_corridor(rng, n):
+    """Flies on the walls (y = ±1, z 0.1-2 m) of a straight corridor from x = -4 to 14, a quarter of them
+    on 30 boxes at random places along it (so that no stretch repeats another)."""
+    side = rng.choice([-1.0, 1.0], n)
+    pts = np.stack([rng.uniform(-4, 14, n), side, rng.uniform(0.1, 2.0, n)], 1)
+    centres = rng.uniform(-4, 14, 30)
+    box = rng.random(n) < 0.25
+    k = rng.integers(0, 30, box.sum())
+    pts[box, 0] = centres[k] + rng.uniform(-0.2, 0.2, box.sum())
+    pts[box, 1] = np.where(k % 2 == 0, 0.7, -0.7) + rng.uniform(-0.15, 0.15, box.sum())
+    return pts
+
+
+def test_a_loop_registers_the_overlap_of_two_views_far_apart_along_a_corridor():
+    """Back 2.4 m behind the first keyframe, drifted 0.3 m along, 0.4 m across and 4°: most of the new
+    keyframe's flies lie between the two cameras, where the old one never looked.  Registered whole,
+    they pull it forward to the window's edge, a metre along the corridor; on the two views' overlap
+    the loop factor stays within the drift it corrects."""
+    rng = np.random.default_rng(3)
+    world = straight_corridor(rng, 40000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(loop_closure=True))
+    old = _keyframe_seeing(0, planar_pose(0, 0, 0), planar_pose(0, 0, 0), world, rng)
+    T_true = planar_pose(-2.4, 0.0, 0.0)
+    new = _keyframe_seeing(1, T_true, T_true @ planar_pose(0.3, 0.4, np.deg2rad(4.0)), world, rng)
+    loc.backend.add(old)
+    loc.backend.add(new)
+    assert loc._close_loop(old, new) is not None, loc.loop_closures
+    loop = [e for e in loc.backend.graph.edges().values() if e.kind not in ("prior", "odometry")][-1]
+    x, y, yaw = planar_from_transform(loop.T_i_j)       # the new keyframe in the old one's frame
+    assert abs(x + 2.4) < 0.7 and abs(y) < 0.2 and abs(np.rad2deg(yaw)) < 1.5, (x, y, np.rad2deg(yaw))
+
+
+def test_a_place_mapped_long_ago_comes_back_through_loop_closure_not_tracking():
+    """Until a loop closure ties the drifted lap to its start, the start's keyframes are not tracked
+    against (a window sized for one update's drift met the whole lap's); after it, they are."""
+    world = ring_points(np.random.default_rng(0), 30000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(gate_chi2=-1.0, min_view_coverage=1.01, loop_closure=True))
+    chosen_before, chosen_after = [], []
+    choose = loc._local_keyframes
+
+    def spy(T):
+        idx, cover = choose(T)
+        closed = any(lc.accepted for lc in loc.loop_closures)
+        newest = max(kf.id for kf in loc._pool)
+        (chosen_after if closed else chosen_before).append(min((loc._pool[i].id for i in idx), default=newest) - newest)
+        return idx, cover
+
+    loc._local_keyframes = spy
+    drive(loc, world, lap(), np.random.default_rng(1), yaw_scale=1.02, dist_scale=1.03)
+    sep = loc.config.loop_min_separation
+    assert any(lc.accepted for lc in loc.loop_closures)
+    assert min(chosen_before) >= -sep
+    assert min(chosen_after) < -sep

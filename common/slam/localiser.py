@@ -178,6 +178,10 @@ class FlyLocaliser:
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
         self._pool_list: list[Keyframe] | None = None
+        # the old keyframe the newest accepted loop closure or relocalisation tied the pose to (see
+        # _tracking_mask); None: only the recent keyframes track
+        self._revisit_anchor: int | None = None
+        self._mask_cache: tuple | None = None
 
     # ------------------------------------------------------------------------------ selection
     def select_flies(self, positions_cam: np.ndarray, fitness: np.ndarray):
@@ -219,6 +223,37 @@ class FlyLocaliser:
             self._map_cache = (ids, pts, np.repeat(np.arange(len(sizes)), sizes), sizes)
         return self._map_cache[1:]
 
+    def _tracking_mask(self) -> np.ndarray:
+        """(len(pool),) bool: the keyframes the pose may be tracked against.  With loop closure on, a
+        keyframe more than ``loop_min_separation`` keyframes older than the newest is a place mapped
+        long ago: it comes back in through _close_loop (its wide window, a robust factor), unless it
+        is near (in keyframe ids) the old keyframe the newest accepted loop closure or relocalisation
+        tied the pose to.  Tracked against with a window sized for one update's drift, such a keyframe
+        met a metre of loop drift, and the heading took it (a 10 frames/s loop turned 14° wrong at its
+        last corner and never closed)."""
+        pool = self._pool
+        ids = np.fromiter((kf.id for kf in pool), dtype=np.int64, count=len(pool))
+        if self.backend is None or not self.config.loop_closure or len(ids) == 0:
+            return np.ones(len(ids), bool)
+        key = (ids.tobytes(), self._revisit_anchor)
+        if self._mask_cache is None or self._mask_cache[0] != key:
+            sep = self.config.loop_min_separation
+            allowed = ids >= ids.max() - sep
+            if self._revisit_anchor is not None:
+                allowed |= np.abs(ids - self._revisit_anchor) <= sep
+            self._mask_cache = (key, allowed)
+        return self._mask_cache[1]
+
+    def _in_view(self, points_map: np.ndarray, T_map_base: np.ndarray) -> np.ndarray:
+        """(N,) bool: which map-frame points the camera of a robot at ``T_map_base`` sees (both images,
+        within the trusted depth; without a calibration a forward cone of fallback_half_fov_rad)."""
+        cam = transform_points(invert(T_map_base @ self.T_base_camera), points_map)
+        if self.calibration is not None:
+            return visible_mask(cam, self.calibration, (0.3, self.max_depth_m), margin=0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return ((cam[:, 2] > 0.3) & (cam[:, 2] < self.max_depth_m)
+                    & (np.abs(cam[:, 0] / cam[:, 2]) < np.tan(self.config.fallback_half_fov_rad)))
+
     def _visible_per_keyframe(self, T_map_base: np.ndarray) -> np.ndarray:
         """How many of each keyframe's points a camera at ``T_map_base`` would see (vectorised over the
         whole map: one transform, one projection, one bincount; the last answer is reused for the same
@@ -226,17 +261,11 @@ class FlyLocaliser:
         if not self.keyframes:
             return np.zeros(0, dtype=np.int64)
         pts, owner, _ = self._map_arrays()
-        key = (np.asarray(T_map_base, dtype=float).tobytes(), self._map_cache[0])
+        key = (np.asarray(T_map_base, dtype=float).tobytes(), self._map_cache[0], self._revisit_anchor)
         if self._visible_cache is not None and self._visible_cache[0] == key:
             return self._visible_cache[1]
-        cam = transform_points(invert(T_map_base @ self.T_base_camera), pts)
-        if self.calibration is not None:
-            seen = visible_mask(cam, self.calibration, (0.3, self.max_depth_m), margin=0.0)
-        else:   # no calibration: a forward cone of the configured half-angle
-            with np.errstate(divide="ignore", invalid="ignore"):
-                seen = ((cam[:, 2] > 0.3) & (cam[:, 2] < self.max_depth_m)
-                        & (np.abs(cam[:, 0] / cam[:, 2]) < np.tan(self.config.fallback_half_fov_rad)))
-        visible = np.bincount(owner[seen], minlength=len(self._pool))
+        seen = self._in_view(pts, T_map_base)
+        visible = np.bincount(owner[seen], minlength=len(self._pool)) * self._tracking_mask()
         self._visible_cache = (key, visible)
         return visible
 
@@ -275,7 +304,9 @@ class FlyLocaliser:
         if not self.keyframes:
             return True
         x, y, yaw = planar_from_transform(T_map_base)
-        for kf in self._pool:
+        for kf, tracked in zip(self._pool, self._tracking_mask()):
+            if not tracked:      # a place mapped long ago gets a new keyframe: its loop closure
+                continue
             kx, ky, kyaw = planar_from_transform(kf.T_map_base)
             dyaw = abs((yaw - kyaw + np.pi) % (2 * np.pi) - np.pi)
             if np.hypot(x - kx, y - ky) < self.config.keyframe_distance_m and dyaw < self.config.keyframe_angle_rad:
@@ -315,23 +346,35 @@ class FlyLocaliser:
         if handle is not None and be.drop_if_outvoted(handle):
             be.loops[-1].accepted, be.loops[-1].reason = False, "outvoted by the graph"
             C = be.optimise(kf.id) @ C
+        elif handle is not None:
+            self._revisit_anchor = old.id
         self._map_cache = self._visible_cache = None
         return C
 
     def _close_loop(self, old: Keyframe, kf: Keyframe) -> int | None:
         """Register keyframe ``kf``'s flies against the old keyframe's (δ, planar, around kf's pose); an
         informative minimum becomes a robust loop factor.  Axes whose minimum sits on the window's edge
-        (along a corridor) are pinned and their sigma made loose."""
+        (along a corridor) are pinned and their sigma made loose.
+
+        Only the two views' overlap registers: kf's flies the old camera sees, against the old flies
+        kf's camera sees.  Two keyframes 2.4 m apart along a corridor share a fifth of the nearer one's
+        flies; the rest, with no counterpart, slid it to the window's edge along the corridor, and the
+        heading and lateral offset then took what the pinned axis could not (a loop closed 2° worse)."""
         c = self.config
-        if len(kf.points) < c.min_flies or len(old.points) < c.min_flies:
+        A_map = transform_points(kf.T_map_base, kf.points.astype(np.float64))
+        in_a = self._in_view(A_map, old.T_map_base)
+        in_b = self._in_view(old.points_map.astype(np.float64), kf.T_map_base)
+        if min(in_a.sum(), in_b.sum()) < c.min_flies:
             return None
-        B = transform_points(invert(kf.T_map_base), old.points_map.astype(np.float64))
+        A = kf.points[in_a].astype(np.float64)
+        B = transform_points(invert(kf.T_map_base), old.points_map[in_b].astype(np.float64))
+        weights_a = kf.fitness[in_a] / max(float(kf.fitness.max()), 1e-12)
         window = np.array(c.loop_window, dtype=float)
 
         def register(win):
-            return register_planar(kf.points.astype(np.float64), B, plane="body", window=tuple(win), eps=c.eps,
-                                   weights_a=kf.fitness / max(float(kf.fitness.max()), 1e-12), stereo=self.stereo,
-                                   seed=int(kf.stamp_ns % (2**31)), lattice=(7, 7, 7), curvature=False)
+            return register_planar(A, B, plane="body", window=tuple(win), eps=c.eps, weights_a=weights_a,
+                                   stereo=self.stereo, seed=int(kf.stamp_ns % (2**31)), lattice=(7, 7, 7),
+                                   curvature=False)
         try:
             res = register(window)
             pinned = np.zeros(3, bool)
@@ -409,6 +452,10 @@ class FlyLocaliser:
         self._last_fix_stamp = stamp_ns
         self._updates_since_fix = 0
         self._driven_since_fix = self._turned_since_fix = self._fast_turn_since_fix = 0.0
+        pool = self._pool
+        if pool:     # the map's nearest keyframe: tracking may use the old keyframes around it
+            self._revisit_anchor = min(pool, key=lambda kf: np.linalg.norm(kf.T_map_base[:2, 3] - T_map_base[:2, 3])).id
+            self._visible_cache = None
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
             self.T_map_odom = T_map_base @ invert(T_odom_base)
