@@ -2,9 +2,11 @@
 
 Runs the chain in lockstep (every frame, a fixed number of generations per frame, deterministic for a
 seed; see common.lockstep), then writes to DIR:
-- ``estimated.tum``, ``groundtruth.tum`` and, when the recording has odometry, ``odometry.tum``;
+- ``estimated.tum`` (the final trajectory, as the live localiser writes it: after loop closures),
+  ``groundtruth.tum`` and, when the recording has odometry, ``odometry.tum``;
 - ``metrics.json``: ATE RMSE after SE(3) alignment, mean RPE (translation, rotation), drift in % of path
-  length, frames per second — for the estimate and for odometry alone;
+  length, frames per second — for the final trajectory ("flyslam"), for the poses as published frame by
+  frame ("flyslam_online") and for odometry alone;
 - ``trajectories.png``: the three trajectories seen from above.
 """
 from __future__ import annotations
@@ -25,12 +27,16 @@ from common.trajectory_metrics import TrajectoryMismatch, evaluate
 from deploy.progress import Progress
 
 
-def plot(path: Path, result, odom_in_map) -> None:
+def plot(path: Path, result, odom_in_map, stamps, estimated) -> None:
+    """Truth, odometry and the estimate from above, in the map frame: the truth is moved so that it
+    starts where the estimate does (a recording's world frame need not start at the map's origin)."""
     import cv2
     size, margin = 800, 40
-    tracks = {"ground truth": (np.array([T[:3, 3] for T in result.truth]), (60, 160, 60)),
+    i = min(int(np.searchsorted(result.truth_stamps, stamps[0])), len(result.truth) - 1)
+    T_map_world = estimated[0] @ np.linalg.inv(result.truth[i])
+    tracks = {"ground truth": (np.array([(T_map_world @ T)[:3, 3] for T in result.truth]), (60, 160, 60)),
               "odometry": (np.array([T[:3, 3] for T in odom_in_map]) if odom_in_map else np.zeros((0, 3)), (40, 40, 220)),
-              "flyslam": (np.array([T[:3, 3] for T in result.estimated]), (200, 90, 20))}
+              "flyslam": (np.array([T[:3, 3] for T in estimated]), (200, 90, 20))}
     pts = np.concatenate([t for t, _ in tracks.values() if len(t)])[:, :2]
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     scale = (size - 2 * margin) / max(float(np.max(hi - lo)), 1e-3)
@@ -118,7 +124,13 @@ def main(argv=None) -> int:
         print(f"flyslam eval: {args.recording} has no stereo frames with a calibration", file=sys.stderr)
         return 2
     stamps = np.array(result.stamps, np.int64)
-    write_tum(out / "estimated.tum", stamps, np.array(result.estimated))
+    # The trajectory as the live localiser writes it: every pose re-expressed in the back-end's final
+    # keyframe poses (a loop closure corrects what came before it).  The poses as published, frame by
+    # frame, are "flyslam_online".
+    final_stamps, final_poses = result.localiser.trajectory() if result.localiser is not None else (stamps, result.estimated)
+    if len(final_stamps) == 0:
+        final_stamps, final_poses = stamps, np.array(result.estimated)
+    write_tum(out / "estimated.tum", final_stamps, np.asarray(final_poses))
     metrics = {"recording": str(args.recording), "frames": result.frames,
                "frames_per_s": round(result.frames_per_s, 3), "registered_fraction": round(result.registered_fraction, 3),
                "keyframes": result.keyframes}
@@ -135,18 +147,19 @@ def main(argv=None) -> int:
     if result.truth:
         write_tum(out / "groundtruth.tum", np.array(result.truth_stamps, np.int64), np.array(result.truth))
         try:
-            metrics["flyslam"] = evaluate(stamps, result.estimated, result.truth_stamps, result.truth).as_dict()
+            metrics["flyslam"] = evaluate(final_stamps, final_poses, result.truth_stamps, result.truth).as_dict()
+            metrics["flyslam_online"] = evaluate(stamps, result.estimated, result.truth_stamps, result.truth).as_dict()
             if have_odom:
                 metrics["odometry_only"] = evaluate(odom_stamps, odom_in_map, result.truth_stamps, result.truth).as_dict()
                 metrics["ate_improvement_over_odometry"] = round(
                     metrics["odometry_only"]["ate_rmse_m"] / max(metrics["flyslam"]["ate_rmse_m"], 1e-9), 2)
         except TrajectoryMismatch as e:
             metrics["error"] = str(e)
-        plot(out / "trajectories.png", result, odom_in_map)
+        plot(out / "trajectories.png", result, odom_in_map, final_stamps, final_poses)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     print(f"frames {result.frames} at {result.frames_per_s:.2f} frames/s, registered {100 * result.registered_fraction:.0f} %, "
           f"{result.keyframes} keyframes")
-    for name in ("flyslam", "odometry_only"):
+    for name in ("flyslam", "flyslam_online", "odometry_only"):
         if name in metrics:
             r = metrics[name]
             print(f"{name:14s} ATE {r['ate_rmse_m']:.3f} m ({r['ate_pct_of_path']:.2f} % of {r['path_length_m']:.1f} m)  "
