@@ -50,10 +50,10 @@ class PlannerServiceConfig:
     new_view_deg: float = field(default=5.0, metadata={"help": "... or turned this much (deg), ..."})
     new_view_s: float = field(default=2.0, metadata={
         "help": "... or this long (s) passed since the last population; less of any: evidence in proportion"})
+    # Below occupied_weight (2): the Parisian population breeds tight clusters of near-copies of one fly,
+    # and one wrong match copied 16 times is still one wrong match.
     view_cell_cap: float = field(default=1.5, metadata={
-        "help": "most evidence one whole view adds to a grid cell; below the planner's occupied_weight (2), so "
-                "no single view makes an obstacle: the Parisian population breeds tight clusters of near-copies "
-                "of one fly, and one wrong match copied 16 times is still one wrong match"})
+        "help": "most evidence one whole view adds to a grid cell (below occupied_weight: one view is no obstacle)"})
     wait_for_map: bool = field(default=True, metadata={
         "help": "stay still and fold no flies until the localiser has a map (its first slam/map_to_odom); false: use fusion/pose alone"})
 
