@@ -6,7 +6,7 @@ Thin on purpose: subscriptions here, the message → Rerun mapping in :mod:`comm
   subscriptions polled at ``--image-hz``: the bridge never queues images it cannot afford to log.
 - Poses, commands, heartbeats, calibration and targets arrive by callback into a bounded inbox that the
   main loop drains (Rerun's timelines are per thread, so all logging happens on the main thread).
-- The latched calibration and the localiser's map (a queryable, asked every ``--map-period-s``
+- The latched calibration, the target and the localiser's map (a queryable, asked every ``--map-period-s``
   seconds) come through :meth:`common.bus.Node.latched`.
 - Liveliness tokens (``health/*``) are watched so that a vanished service shows as 0 in "Alive".
 
@@ -172,7 +172,10 @@ def subscribe_all(node, inbox: Inbox, map_period_s: float):
         node.subscribe(stream, callback=lambda msg, name=name: inbox.put(name, msg))
     node.watch_liveliness(S.HEALTH_PREFIX, lambda service, alive: inbox.put("health", (service, alive)))
     latest = {stream.key: node.subscribe_latest(stream) for stream in LATEST_STREAMS}
+    # The target comes by callback too; asked for as well, since a target published once before the
+    # subscription matched its publisher (a bridge started with the planner) was otherwise never shown.
     latched = {S.STEREO_CALIBRATION.key: node.latched(S.STEREO_CALIBRATION),
+               S.PLANNER_TARGET.key: node.latched(S.PLANNER_TARGET),
                S.SLAM_MAP.key: node.latched(S.SLAM_MAP, refresh_s=map_period_s)}
     return latest, latched
 
