@@ -27,8 +27,8 @@ STEREO_FRAME = Stream("stereo/frame", m.StereoFrame)
 STEREO_CALIBRATION = Stream("stereo/calibration", m.StereoCalibrationMsg, latched=True)
 ODOM_WHEELS = Stream("odom/wheels", m.WheelOdometry)
 SONAR_SCAN = Stream("sonar/scan", m.SonarScan)
-# (reliable: published right after a frame, a best-effort truth pose was dropped behind the frame's bytes on
-# a loaded machine, and the run's ATE lost that pose)
+# (reliable: every truth pose counts in the run's ATE; best-effort, one published right behind a frame's
+# bytes can be dropped on a loaded machine)
 TRUTH_POSE = Stream("truth/pose", m.PoseEstimate, reliable=True)
 TRUTH_DEPTH = Stream("truth/depth", m.DepthImage)
 # Fusion

@@ -181,7 +181,6 @@ class FlyLocaliser:
         # the old keyframe the newest accepted loop closure or relocalisation tied the pose to (see
         # _tracking_mask); None: only the recent keyframes track
         self._revisit_anchor: int | None = None
-        self._mask_cache: tuple | None = None
 
     # ------------------------------------------------------------------------------ selection
     def select_flies(self, positions_cam: np.ndarray, fitness: np.ndarray):
@@ -229,20 +228,16 @@ class FlyLocaliser:
         long ago: it comes back in through _close_loop (its wide window, a robust factor), unless it
         is near (in keyframe ids) the old keyframe the newest accepted loop closure or relocalisation
         tied the pose to.  Tracked against with a window sized for one update's drift, such a keyframe
-        met a metre of loop drift, and the heading took it (a 10 frames/s loop turned 14° wrong at its
-        last corner and never closed)."""
+        meets the whole loop's drift, and the heading absorbs it."""
         pool = self._pool
         ids = np.fromiter((kf.id for kf in pool), dtype=np.int64, count=len(pool))
         if self.backend is None or not self.config.loop_closure or len(ids) == 0:
             return np.ones(len(ids), bool)
-        key = (ids.tobytes(), self._revisit_anchor)
-        if self._mask_cache is None or self._mask_cache[0] != key:
-            sep = self.config.loop_min_separation
-            allowed = ids >= ids.max() - sep
-            if self._revisit_anchor is not None:
-                allowed |= np.abs(ids - self._revisit_anchor) <= sep
-            self._mask_cache = (key, allowed)
-        return self._mask_cache[1]
+        sep = self.config.loop_min_separation
+        allowed = ids >= ids.max() - sep
+        if self._revisit_anchor is not None:
+            allowed |= np.abs(ids - self._revisit_anchor) <= sep
+        return allowed
 
     def _in_view(self, points_map: np.ndarray, T_map_base: np.ndarray) -> np.ndarray:
         """(N,) bool: which map-frame points the camera of a robot at ``T_map_base`` sees (both images,
@@ -357,9 +352,9 @@ class FlyLocaliser:
         (along a corridor) are pinned and their sigma made loose.
 
         Only the two views' overlap registers: kf's flies the old camera sees, against the old flies
-        kf's camera sees.  Two keyframes 2.4 m apart along a corridor share a fifth of the nearer one's
-        flies; the rest, with no counterpart, slid it to the window's edge along the corridor, and the
-        heading and lateral offset then took what the pinned axis could not (a loop closed 2° worse)."""
+        kf's camera sees.  Two keyframes metres apart along a corridor share a small part of the nearer
+        one's flies; the rest, with no counterpart, slide it to the window's edge along the corridor, and
+        the heading and lateral offset then take what the pinned axis cannot."""
         c = self.config
         A_map = transform_points(kf.T_map_base, kf.points.astype(np.float64))
         in_a = self._in_view(A_map, old.T_map_base)
@@ -455,7 +450,6 @@ class FlyLocaliser:
         pool = self._pool
         if pool:     # the map's nearest keyframe: tracking may use the old keyframes around it
             self._revisit_anchor = min(pool, key=lambda kf: np.linalg.norm(kf.T_map_base[:2, 3] - T_map_base[:2, 3])).id
-            self._visible_cache = None
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
             self.T_map_odom = T_map_base @ invert(T_odom_base)

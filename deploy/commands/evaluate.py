@@ -127,9 +127,7 @@ def main(argv=None) -> int:
     # The trajectory as the live localiser writes it: every pose re-expressed in the back-end's final
     # keyframe poses (a loop closure corrects what came before it).  The poses as published, frame by
     # frame, are "flyslam_online".
-    final_stamps, final_poses = result.localiser.trajectory() if result.localiser is not None else (stamps, result.estimated)
-    if len(final_stamps) == 0:
-        final_stamps, final_poses = stamps, np.array(result.estimated)
+    final_stamps, final_poses = result.localiser.trajectory()
     write_tum(out / "estimated.tum", final_stamps, np.asarray(final_poses))
     metrics = {"recording": str(args.recording), "frames": result.frames,
                "frames_per_s": round(result.frames_per_s, 3), "registered_fraction": round(result.registered_fraction, 3),
