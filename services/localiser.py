@@ -14,7 +14,9 @@ appended as it is published and the whole file is rewritten atomically every ``t
 the back-end's (optimised) trajectory.  On a restart (the supervisor sets ``FLYSLAM_RESTARTS`` > 0) the
 run folder's ``map.mcap`` is the one the killed run saved: it is loaded (in preference to ``--map``) and
 the localiser relocalises in it, near the ``slam/map_to_odom`` the bus still latches (the supervisor
-holds it), so poses resume at once.  A fresh start into a folder an earlier run wrote sets that run's
+holds it).  While the core's code and the map load (a second or more: numba, SciPy, GTSAM), a stand-in
+(common.slam.standin) publishes 'relocalising: loading the map' poses from that map→odom and the
+odometry, so a restarted localiser is heard from at once.  A fresh start into a folder an earlier run wrote sets that run's
 trajectory and map aside (``*.previous.*``) instead of continuing them.
 """
 from __future__ import annotations
@@ -24,19 +26,24 @@ import os
 import sys
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from common import messages as m
 from common import streams as S
 from common.config_args import add_config_arguments
-from common.slam import LocaliserConfig
-from common.slam.backend import ArchiveConfig
-from common.slam.core import LocaliserCore, LocaliserOutput, LocaliserServiceConfig
+from common.pose_buffer import PoseBuffer
+from common.slam.config import ArchiveConfig, LocaliserConfig, LocaliserServiceConfig
 from common.slam.mapfile import MapFileError, load_map
+from common.slam.standin import StandInCore
 from common.trajectory import TrajectoryFormatError, format_tum, parse_tum
 from services.base import config_or_exit, run_service, service_parser
+
+if TYPE_CHECKING:    # imported at run time by load_localiser, in a thread: it is the slow part of a start
+    from common.slam.core import LocaliserCore, LocaliserOutput
 
 log = logging.getLogger("flyslam.localiser")
 LOCALISER_FLAGS = ["max_keyframes", "max_depth_m", "odometry"]
@@ -134,38 +141,45 @@ def starting_map(run: LocaliserServiceConfig, map_path: Path | None):
     return None, False
 
 
+def load_localiser(run: LocaliserServiceConfig, map_path: Path | None):
+    """The slow part of a start, run beside the stand-in: import the core (numba, SciPy, GTSAM: a second
+    or more) and read the starting map.  (LocaliserCore class, map data or None, restarted)."""
+    from common.slam.core import LocaliserCore
+
+    return (LocaliserCore, *starting_map(run, map_path))
+
+
+def latched_map_to_odom(node) -> np.ndarray | None:
+    """Where odom was in the map when the killed run stopped (the supervisor latches it), or None."""
+    for _ in range(3):      # (a query sent before the session has joined the bus finds nobody)
+        latched = node.query_latest(S.SLAM_MAP_TO_ODOM, timeout=0.3)
+        if latched is not None:
+            return m.transform_of(latched)
+        time.sleep(0.1)
+    return None
+
+
 def body(node, args) -> int:
     run = config_or_exit(LocaliserServiceConfig, args)
+    config = config_or_exit(LocaliserConfig, args, only=LOCALISER_FLAGS, rename=RENAME)
+    archive = config_or_exit(ArchiveConfig, args, only=["max_archive_keyframes"])
     map_path = Path(run.tum).parent / "map.mcap" if run.tum else None
     if not is_restart():
         set_aside_earlier_run(Path(run.tum) if run.tum else None, map_path)
-    try:
-        initial_map, restarted = starting_map(run, map_path)
-    except MapFileError as e:
-        log.error("%s", e)
-        return 2
-    hint = None
-    if restarted:    # where odom was in the map when the run was killed (held by the supervisor)
-        for _ in range(3):      # (a query sent before the session has joined the bus finds nobody)
-            latched = node.query_latest(S.SLAM_MAP_TO_ODOM, timeout=0.3)
-            if latched is not None:
-                break
-            time.sleep(0.1)
-        hint = m.transform_of(latched) if latched is not None else None
-        log.info("restart: relocalising %s", "near the latched map->odom" if hint is not None else "in the whole map")
-    core = LocaliserCore(config_or_exit(LocaliserConfig, args, only=LOCALISER_FLAGS, rename=RENAME), seed=run.seed,
-                         initial_map=initial_map, hint_map_to_odom=hint,
-                         archive=config_or_exit(ArchiveConfig, args, only=["max_archive_keyframes"]))
+    loading: Future = ThreadPoolExecutor(1, thread_name_prefix="load").submit(load_localiser, run, map_path)
+    hint = latched_map_to_odom(node) if is_restart() else None
+    odometry = PoseBuffer(maxlen=1000)
+    stand_in, core = StandInCore(hint, odometry), None
     tum = TrajectoryFile(run.tum) if run.tum else None
     lock = threading.Lock()
 
     def on_odom(msg: m.PoseEstimate) -> None:
         with lock:
-            core.on_odometry(msg.header.stamp_ns, m.transform_of(msg))
+            odometry.add(msg.header.stamp_ns, m.transform_of(msg))
 
     def serve_map():
         with lock:
-            return core.map_message(time.time_ns())
+            return core.map_message(time.time_ns()) if core is not None else None
 
     node.subscribe(S.FUSION_ODOM, callback=on_odom)
     calibration = node.latched(S.STEREO_CALIBRATION)
@@ -175,13 +189,34 @@ def body(node, args) -> int:
     last_tum = last_map = time.monotonic()
     map_changed = False
     while not node.stopping:
-        pop = populations.wait(timeout=0.5)
+        if core is None and loading.done():
+            try:
+                core_class, initial_map, restarted = loading.result()
+            except MapFileError as e:
+                log.error("%s", e)
+                return 2
+            if restarted:
+                log.info("restart: relocalising %s (%d stand-in poses while loading)",
+                         "near the latched map->odom" if hint is not None else "in the whole map", stand_in.published)
+            with lock:
+                core = core_class(config, seed=run.seed, odometry=odometry, initial_map=initial_map,
+                                  hint_map_to_odom=hint if restarted else None, archive=archive)
+        pop = populations.wait(timeout=0.5 if core is not None else 0.05)
         if pop is None:
             continue
         with lock:
-            if not core.has_calibration and calibration.get() is not None:
-                core.on_calibration(calibration.get())
-            out = core.on_population(pop)
+            current = core if core is not None else stand_in
+            if not current.has_calibration and calibration.get() is not None:
+                current.on_calibration(calibration.get())
+            if core is None:
+                stand_in_pose = stand_in.on_population(pop)
+            else:
+                out = core.on_population(pop)
+        if core is None:
+            if stand_in_pose is not None:
+                node.counters.add("relocalising")
+                pubs[0].publish(stand_in_pose)
+            continue
         publish(node, out, pop, *pubs)
         node.rates["keyframes"] = float(len(core.keyframes))
         if out.estimate is not None:
@@ -196,6 +231,8 @@ def body(node, args) -> int:
             with lock:
                 save_map_logged(core, map_path, quiet=True)
             last_map, map_changed = time.monotonic(), False
+    if core is None:        # stopped while loading: nothing of this run to write
+        return 0
     if tum is not None:
         total = tum.rewrite(*core.trajectory())
         log.info("wrote %d poses to %s (%d of this run)", total, run.tum, core.localised)

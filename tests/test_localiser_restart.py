@@ -13,6 +13,7 @@ from common import messages as m
 from common.bus import BusOptions, Node
 from common.geometry import planar_pose
 from common.trajectory import read_tum
+from common.slam.standin import LOADING_STATUS, StandInCore
 from tests.helpers import hub, start_module, stop, wait_until
 from tests.test_relocalise import CALIB, corridor, population
 
@@ -99,8 +100,12 @@ def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp
                 time.sleep(0.1)
         finally:
             assert stop(proc) == 0, (tmp_path / "loc2.log").read_text()[-3000:]
-    print(f"\nrestart: first pose {t_first - restarted:.2f} s after the process started "
-          f"({t_first - t_killed:.2f} s after the kill), status {first.status!r}")
+    with lock:
+        t_any, _ = poses[n0]
+        loading = [p for _, p in poses[n0:] if p.status == LOADING_STATUS]
+    print(f"\nrestart: first pose {t_any - restarted:.2f} s after the process started ({len(loading)} while "
+          f"loading), first registered one {t_first - restarted:.2f} s ({t_first - t_killed:.2f} s after the kill), "
+          f"status {first.status!r}")
     log = (tmp_path / "loc2.log").read_text()
     assert "continuing the run's map" in log and "near the latched map->odom" in log, log[-2000:]
     # the first pose after the restart is where the robot is in the run's map (its frame is the killed
@@ -108,6 +113,9 @@ def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp
     last = before[-1]
     expected = m.transform_of(last) @ np.linalg.inv(truth(where[last.source_seq])) @ truth(k_first)
     assert np.linalg.norm(m.transform_of(first)[:2, 3] - expected[:2, 3]) < 0.1, first.status
+    for p in loading:       # while its code loaded it said where the latched map->odom and odometry put it
+        at = m.transform_of(last) @ np.linalg.inv(truth(where[last.source_seq])) @ truth(where[p.source_seq])
+        assert np.linalg.norm(m.transform_of(p)[:2, 3] - at[:2, 3]) < 0.1 and p.covariance[0, 0] >= 1e3
     stamps, traj = read_tum(tum)
     assert set(written_stamps) <= set(stamps.tolist())          # 100 % of the poses before the kill kept
     assert np.all(np.diff(stamps) > 0) and stamps[-1] > written_stamps[-1]
@@ -136,3 +144,24 @@ def test_a_fresh_start_sets_an_earlier_runs_files_aside_instead_of_continuing_th
     assert not tum.exists() and not saved.exists()
     assert (tmp_path / "estimated.previous.tum").read_text().startswith("1.0")
     assert (tmp_path / "map.previous.mcap").exists()
+
+
+def test_the_stand_in_publishes_the_latched_pose_moved_by_odometry_and_nothing_without_it():
+    """While a restarted localiser's code loads: the pose map->odom · odometry gives, marked as
+    relocalising with a covariance that fusion cannot mistake for a fix; nothing it cannot back."""
+    hint, T_base_camera = planar_pose(5.0, 2.0, 0.3), CALIB.T_base_camera
+    nothing = StandInCore(None)
+    assert nothing.on_population(population(planar_pose(1, 0, 0), np.zeros((0, 3)), np.random.default_rng(0), 1, 10**9,
+                                            planar_pose(1, 0, 0))) is None
+    stand_in = StandInCore(hint)
+    stand_in.on_calibration(m.calibration_to_msg(CALIB, 1, 1))
+    odom = planar_pose(1.5, 0.2, 0.1)
+    pop = m.FlyPopulation(positions=np.zeros((1, 3), np.float32), fitness=np.ones(1, np.float32), generation=10,
+                          source_seq=7, T_odom_camera=odom @ T_base_camera, header=m.header(0, 2 * 10**9, m.CAMERA_LEFT_OPTICAL))
+    pose = stand_in.on_population(pop)
+    assert pose.status == LOADING_STATUS and pose.source_seq == 7 and pose.covariance[0, 0] >= 1e3
+    np.testing.assert_allclose(m.transform_of(pose), hint @ odom, atol=1e-6)
+    pop.T_odom_camera = None                          # no odometry on the population: the odometry stream's
+    assert stand_in.on_population(pop) is None        # (none received yet: nothing to say)
+    stand_in.on_odometry(2 * 10**9, odom)
+    np.testing.assert_allclose(m.transform_of(stand_in.on_population(pop)), hint @ odom, atol=1e-6)

@@ -16,11 +16,12 @@ keyframe's ``T_map_base`` and ``points_map`` are the graph's.  Factors (flyslam 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from common.geometry import invert, orthonormalised, planar_from_transform, planar_pose, transform_points
+from common.slam.config import ArchiveConfig
 from common.slam.posegraph import PoseGraph, PoseGraphError, planar_covariance
 
 _MIN_SIGMA = (0.005, np.deg2rad(0.05))    # floor on a factor's position (m) and rotation (rad) sigma
@@ -33,24 +34,6 @@ class LoopClosure:
     correction_m: float        # how far the closure moved the new keyframe
     accepted: bool
     reason: str = ""
-
-
-@dataclass
-class ArchiveConfig:
-    """The back-end's hard size bound.  500 keyframes hold ~20 MB of flies (~1,200 points each, points,
-    map-frame copy and fitness: ~28 bytes a point) and, at keyframe_distance_m = 1.5 m, 750 m of distinct
-    path; a robot that comes back to a place adds keyframes there again (the local map is chosen from
-    the sliding window), so a long run reaches the bound however small its world is."""
-    max_archive_keyframes: int = field(default=500, metadata={
-        "help": "keyframes the map keeps at most (past it the most redundant old ones are dropped)"})
-    drop_fraction: float = field(default=0.1, metadata={
-        "help": "share of the bound dropped at once when it is reached (the graph is rebuilt once for them)"})
-
-    def __post_init__(self):
-        if int(self.max_archive_keyframes) < 1:
-            raise ValueError(f"max_archive_keyframes must be at least 1, got {self.max_archive_keyframes}")
-        if not 0.0 <= float(self.drop_fraction) < 1.0:
-            raise ValueError(f"drop_fraction must be in [0, 1), got {self.drop_fraction}")
 
 
 def odometry_sigmas(config, distance_m: float, turned_rad: float) -> tuple[float, float]:

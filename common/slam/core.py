@@ -27,7 +27,7 @@ Not thread-safe: the service serialises calls.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,25 +35,11 @@ from common import messages as m
 from common.geometry import invert, pose_from_transform
 from common.core_inputs import LatchedInputs
 from common.pose_buffer import PoseBuffer
-from common.slam.backend import ArchiveConfig
-from common.slam.localiser import Estimate, FlyLocaliser, LocaliserConfig, LocaliserError
+from common.slam.config import ArchiveConfig, LocaliserConfig, LocaliserServiceConfig
+from common.slam.localiser import Estimate, FlyLocaliser, LocaliserError
 from common.slam.mapfile import FlyMapData, save_map
 from common.slam.relocalise import Relocalisation, Relocaliser, RelocaliserConfig
-
-UNKNOWN_COVARIANCE = np.eye(6) * 1e4    # a relocalising pose says nothing
-
-
-@dataclass
-class LocaliserServiceConfig:
-    """The live localiser's settings outside :class:`LocaliserConfig`."""
-    tum: str | None = field(default=None, metadata={
-        "help": "append each pose to this TUM file (kept across restarts), rewritten optimised every tum_period_s"})
-    tum_period_s: float = field(default=5.0, metadata={"help": "seconds between atomic rewrites of --tum"})
-    seed: int = field(default=0, metadata={"help": "random seed of the localiser"})
-    map: str | None = field(default=None, metadata={
-        "help": "start from this saved map (map.mcap of an earlier run)"})
-    map_period_s: float = field(default=2.0, metadata={
-        "help": "seconds between rewrites of map.mcap next to --tum once it changed (and on exit)"})
+from common.slam.standin import UNKNOWN_COVARIANCE
 
 
 @dataclass
