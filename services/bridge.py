@@ -55,6 +55,8 @@ def build_parser():
     p.add_argument("--server-memory-limit", default="512MiB",
                    help="how much the live server buffers for viewers that connect late")
     p.add_argument("--image-hz", type=float, default=10.0, help="log images, flies and the field at most this often")
+    p.add_argument("--pose-hz", type=float, default=30.0,
+                   help="log each pose stream at most this often (sensor time): a flood of poses costs no memory")
     p.add_argument("--max-flies", type=int, default=20_000, help="subsample larger populations to this many")
     p.add_argument("--max-map-points", type=int, default=100_000, help="subsample the map to this many points")
     p.add_argument("--jpeg-quality", type=int, default=80, help="quality when raw images must be compressed")
@@ -210,13 +212,13 @@ def close_sinks(rec, viz: RerunLogger, web) -> None:
 
 
 def body(node, args) -> int:
-    if args.image_hz <= 0 or args.map_period_s <= 0:
-        raise SystemExit("bridge: --image-hz and --map-period-s must be positive")
+    if args.image_hz <= 0 or args.map_period_s <= 0 or args.pose_hz <= 0:
+        raise SystemExit("bridge: --image-hz, --pose-hz and --map-period-s must be positive")
     sinks, grpc_uri = open_sinks(args)
     rec = rr.RecordingStream(args.application_id, send_properties=True)
     rec.set_sinks(*sinks, default_blueprint=blueprint())
     viz = RerunLogger(rec, max_flies=args.max_flies, max_map_points=args.max_map_points,
-                      jpeg_quality=args.jpeg_quality)
+                      jpeg_quality=args.jpeg_quality, pose_period_s=1.0 / args.pose_hz)
     web = start_web_viewer(args, grpc_uri) if grpc_uri else None
     log.info("live: rerun %s; recording to %s", grpc_uri, args.rrd)
     inbox = Inbox(node)

@@ -186,3 +186,18 @@ def test_raw_frames_are_compressed_and_bad_messages_raise_clear_errors(tmp_path)
     assert bytes(blob[:2]) == b"\xff\xd8" and len(blob) < img.nbytes / 3
     assert "4 positions but 3 fitness" in errors[0]
     assert "odom/pose" in errors[1] and "non-finite" in errors[2] and "WheelOdometry" in errors[3]
+
+
+def test_a_flood_of_poses_is_logged_at_the_pose_rate_not_the_publishers(tmp_path):
+    """1,000 fused poses in one second of sensor time (a 1 kHz publisher, or a flood): the robot moves
+    at most 30 times and the trajectory still reaches the last pose to within one period's travel."""
+    def feed(lg):
+        for i in range(1000):
+            T = np.eye(4)
+            T[0, 3] = i * 1e-3          # 1 m/s
+            lg.handle("fusion/pose", m.pose_msg(T, seq=i + 1, stamp_ns=10**9 + i * 10**6))
+    _record(tmp_path / "flood.rrd", feed)
+    rows = rrd_rows(tmp_path / "flood.rrd")
+    moves = rows[f"/{P.ROBOT}"]["Transform3D:translation"]
+    assert 25 <= len(moves) <= 31
+    assert trajectory_points(rows, "fusion/pose")[-1][0] > 1.0 - 1 / 30 - 1e-6

@@ -6,8 +6,9 @@ wall-clock stamps, which would stretch the sensor timeline when replaying a data
 the newest *sensor* stamp seen so far (they are also on Rerun's automatic ``log_time``).
 
 Costs are kept low for a bridge that shares two cores: JPEG frames pass through undecoded, raw frames
-are JPEG-encoded once, populations and maps are subsampled, trajectories are decimated by distance and
-logged in segments of bounded size, the open one re-logged at a bounded rate.
+are JPEG-encoded once, populations and maps are subsampled, poses are logged at a bounded rate per
+stream, trajectories are decimated by distance and logged in segments of bounded size, the open one
+re-logged at a bounded rate.
 """
 from __future__ import annotations
 
@@ -88,7 +89,7 @@ class RerunLogger:
 
     def __init__(self, rec: rr.RecordingStream, *, max_flies: int = 20_000, max_map_points: int = 100_000,
                  jpeg_quality: int = 80, trail_min_step_m: float = 0.01, trail_period_s: float = 0.2,
-                 trail_segment_points: int = 200, seed: int = 0):
+                 trail_segment_points: int = 200, pose_period_s: float = 1 / 30, seed: int = 0):
         if max_flies <= 0 or max_map_points <= 0:
             raise ValueError("max_flies and max_map_points must be positive")
         if not 1 <= jpeg_quality <= 100:
@@ -96,6 +97,8 @@ class RerunLogger:
         self.rec = rec
         self.max_flies, self.max_map_points, self.jpeg_quality = max_flies, max_map_points, jpeg_quality
         self.trail_period_ns = int(trail_period_s * 1e9)
+        self.pose_period_ns = int(pose_period_s * 1e9)
+        self._pose_logged_ns: dict[str, int] = {}
         self._trail_min_step, self._trail_segment_points = trail_min_step_m, trail_segment_points
         self._rng = np.random.default_rng(seed)
         self.calibration_msg: m.StereoCalibrationMsg | None = None
@@ -226,7 +229,9 @@ class RerunLogger:
 
     # ------------------------------------------------------------------------------------ poses
     def pose(self, stream: str, msg: m.PoseEstimate) -> None:
-        """Grow the stream's trajectory; the best pose stream seen so far also moves ``world/robot``."""
+        """Grow the stream's trajectory; the best pose stream seen so far also moves ``world/robot``.
+        At most one pose per ``pose_period_s`` of sensor time is logged per stream (status changes are
+        always noted), so the viewer's memory grows with time, not with the publishers' rate."""
         if stream not in P.TRAJECTORY_STYLE:
             raise ValueError(f"no trajectory view for pose stream {stream!r}")
         stamp = msg.header.stamp_ns
@@ -239,6 +244,10 @@ class RerunLogger:
             return
         if not (np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation))):
             raise ValueError(f"{stream}: non-finite pose")
+        last = self._pose_logged_ns.get(stream)
+        if last is not None and 0 <= stamp - last < self.pose_period_ns:
+            return          # a viewer needs no more than pose_period_s; a flood must not fill its buffer
+        self._pose_logged_ns[stream] = stamp
         rank = BEST_POSE_ORDER.index(stream)
         if self._pose_source is None or rank <= BEST_POSE_ORDER.index(self._pose_source):
             if self._pose_source != stream:
