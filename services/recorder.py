@@ -13,8 +13,8 @@ A recorder never overwrites: when ``--out`` exists (a restart), it writes the ne
 (common.recording). A payload whose stamp MCAP cannot store (a negative ``stamp_ns``…) is recorded
 with its receive time as publish time and counted (``bad_stamps`` in the heartbeat).
 
-The queue holds at most ``--max-backlog-mb`` of payloads (default 32 MB: 25 s of the demo's frames,
-so that a flood costs the process tens of MB, not hundreds): a recorder that falls that far behind
+The queue holds at most ``--max-backlog-mb`` of payloads (default 16 MB: 12 s of the demo's frames,
+so that a flood costs the process at most a few tens of MB): a recorder that falls that far behind
 (niced on a loaded machine) drops the oldest queued messages, counts them per key in its heartbeat
 (``dropped``; ``backlog``/``backlog_mb`` in its rates) and logs a warning, instead of growing without bound.
 """
@@ -41,7 +41,7 @@ def build_parser():
     p.add_argument("--flush-s", type=float, default=1.0, help="close the chunk in progress this often")
     p.add_argument("--run-config", help="JSON file describing the run, stored as metadata")
     p.add_argument("--chunk-mb", type=float, default=4.0, help="chunk size before compression")
-    p.add_argument("--max-backlog-mb", type=float, default=32.0,
+    p.add_argument("--max-backlog-mb", type=float, default=16.0,
                    help="payloads queued for writing beyond this are dropped, oldest first, and counted "
                         "(0 = unbounded)")
     return p
