@@ -9,7 +9,11 @@ subscriber counts the frames that really arrived: the rate reached is measured, 
 
 - Flood: RSS (VmRSS of each service's process) through a warm-up, a nominal phase and a flood phase of
   equal length: ``nominal_rss_growth_mb`` is the growth over the nominal phase, ``flood_rss_growth_mb``
-  the peak during the flood over the RSS at its start, per service, to be read side by side.
+  the peak during the flood over the RSS at its start, per service, to be read side by side;
+  ``flood_rss_excess_mb`` is what the flood adds to what the same time at the nominal rate grows (the
+  flood's growth less the nominal phase's, the phases being equally long): the bridge's live viewer
+  buffer grows with the images it logs at its own bounded rate (up to ``--server-memory-limit``), flood
+  or not.
 - Hostile messages (after the flood, the clip at its nominal rate): ``hostile`` (stream, payload)
   pairs cycled to ``hostile_count`` messages; ``hostile_crashes`` counts service restarts and services
   no longer running afterwards.
@@ -251,6 +255,8 @@ def measure_flood(pipe: Pipeline, phase_s: float, warmup_s: float, multiplier: f
         rss_nominal[n] = None if at_flood is None else round(at_flood, 1)
         growth_nominal[n] = None if start is None or at_flood is None else round(at_flood - start, 1)
         growth_flood[n] = None if peak is None or at_flood is None else round(peak - at_flood, 1)
+    excess = {n: None if growth_flood[n] is None or growth_nominal[n] is None
+              else round(growth_flood[n] - max(growth_nominal[n], 0.0), 1) for n in pipe.names}
     services = pipe.services()
     nominal_hz, flood_hz = rate_in("nominal", "flood", 0), rate_in("flood", "end", 0)
     return {"flood_multiplier_asked": multiplier, "flood_publishers": len(pipe.published), "flood_phase_s": phase_s,
@@ -259,6 +265,8 @@ def measure_flood(pipe: Pipeline, phase_s: float, warmup_s: float, multiplier: f
             "flood_multiplier_reached": round(flood_hz / nominal_hz, 2) if nominal_hz else None,
             "rss_at_end_of_nominal_mb": rss_nominal, "nominal_rss_growth_mb": growth_nominal,
             "flood_rss_growth_mb": growth_flood,
+            "flood_rss_excess_mb": excess,
+            "flood_rss_excess_max_mb": max((v for v in excess.values() if v is not None), default=None),
             "flood_restarts": {n: services.get(n, {}).get("restarts") for n in pipe.names},
             "flood_dropped": {"recorder": services.get("recorder", {}).get("counters", {}).get("dropped", 0),
                               "bridge": services.get("bridge", {}).get("counters", {}).get("inbox_dropped", 0)}}

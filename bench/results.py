@@ -122,6 +122,18 @@ KEY_FIGURES: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("of", "kidnapped_trials", ""),
         ("registration NEES", "registration_nees", ""),
     ]),
+    "faults": ("break-it: bad files and flags, hostile messages, kills, a 10× flood, an attacker", [
+        ("tracebacks", "tracebacks", ""),
+        ("of cases", "file_and_flag_cases", ""),
+        ("crashes from hostile messages", "hostile_crashes", ""),
+        ("recording kept", "recording_kept_fraction", "share"),
+        ("trajectory kept", "trajectory_kept_fraction", "share"),
+        ("poses after a localiser restart", "pose_gap_after_restart_s", "s"),
+        ("flood: most RSS added by a service", "flood_rss_excess_max_mb", "MB"),
+        ("flood reached", "flood_multiplier_reached", "×"),
+        ("attacker's commands delivered", "attacker_commands_delivered", ""),
+        ("secured poses", "secured_poses", ""),
+    ]),
     "fusion": ("sonar term on the texture-poor corridor; 20 m corridor in lockstep", [
         ("flies on a surface with sonar", "surface_fraction_with_sonar", "share"),
         ("without", "surface_fraction_without_sonar", "share"),

@@ -37,7 +37,6 @@ from common import streams as S
 from common.config_args import add_config_arguments
 from common.pose_buffer import PoseBuffer
 from common.slam.config import ArchiveConfig, LocaliserConfig, LocaliserServiceConfig
-from common.slam.mapfile import MapFileError, load_map
 from common.slam.standin import StandInCore
 from common.trajectory import TrajectoryFormatError, format_tum, parse_tum
 from services.base import config_or_exit, run_service, service_parser
@@ -127,6 +126,8 @@ def set_aside_earlier_run(*paths: Path | None) -> None:
 def starting_map(run: LocaliserServiceConfig, map_path: Path | None):
     """(map data or None, restarted): on a restart the run folder's map.mcap, else ``--map``; raises
     MapFileError for a bad ``--map`` (a bad run-folder map is logged and ignored: the run goes on)."""
+    from common.slam.mapfile import MapFileError, load_map     # (mcap: imported in the loading thread)
+
     if map_path is not None and map_path.exists() and is_restart():
         try:
             data = load_map(map_path)
@@ -190,6 +191,7 @@ def body(node, args) -> int:
     map_changed = False
     while not node.stopping:
         if core is None and loading.done():
+            from common.slam.mapfile import MapFileError     # (loaded by now)
             try:
                 core_class, initial_map, restarted = loading.result()
             except MapFileError as e:
@@ -243,6 +245,7 @@ def body(node, args) -> int:
 
 def save_map_logged(core: LocaliserCore, path: Path, quiet: bool = False) -> None:
     """Write map.mcap; a failure (disk full, bad folder) is logged, never fatal."""
+    from common.slam.mapfile import MapFileError
     try:
         if core.save_map(path) and not quiet:
             log.info("wrote the map (%d keyframes) to %s", len(core.localiser.map_keyframes()), path)
