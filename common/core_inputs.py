@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from common import messages as m
+from common.geometry import invert
 from common.pose_buffer import PoseBuffer
 
 
@@ -25,3 +26,10 @@ class LatchedInputs:
 
     def on_odometry(self, stamp_ns: int, T_odom_base: np.ndarray) -> None:
         self.odometry.add(stamp_ns, T_odom_base)
+
+    def odom_base_of(self, pop: m.FlyPopulation, T_base_camera: np.ndarray | None) -> np.ndarray | None:
+        """base_link in odom at a population: the camera pose it carries (None without ``T_base_camera``),
+        else the odometry history at its stamp (None when that is too far off)."""
+        if pop.T_odom_camera is not None:
+            return None if T_base_camera is None else pop.T_odom_camera @ invert(T_base_camera)
+        return self.odometry.at(pop.header.stamp_ns)

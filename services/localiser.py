@@ -16,8 +16,8 @@ run folder's ``map.mcap`` is the one the killed run saved: it is loaded (in pref
 the localiser relocalises in it, near the ``slam/map_to_odom`` the bus still latches (the supervisor
 holds it).  While the core's code and the map load (a second or more: numba, SciPy, GTSAM), a stand-in
 (common.slam.standin) publishes 'relocalising: loading the map' poses from that map→odom and the
-odometry, so a restarted localiser is heard from at once.  A fresh start into a folder an earlier run wrote sets that run's
-trajectory and map aside (``*.previous.*``) instead of continuing them.
+odometry, so a restarted localiser is heard from at once.  A fresh start into a folder an earlier run
+wrote sets that run's trajectory and map aside (``*.previous.*``) instead of continuing them.
 """
 from __future__ import annotations
 

@@ -95,10 +95,7 @@ class LocaliserCore(LatchedInputs):
                 self._bound_map()
         loc = self.localiser
         stamp = pop.header.stamp_ns
-        if pop.T_odom_camera is not None:
-            T_odom_base = pop.T_odom_camera @ invert(loc.T_base_camera)
-        else:
-            T_odom_base = self.odometry.at(stamp)
+        T_odom_base = self.odom_base_of(pop, loc.T_base_camera)
         try:
             if self.relocalising:
                 searched = self._relocalise(pop, T_odom_base)

@@ -15,7 +15,6 @@ import numpy as np
 
 from common import messages as m
 from common.core_inputs import LatchedInputs
-from common.geometry import invert
 from common.pose_buffer import PoseBuffer
 
 UNKNOWN_COVARIANCE = np.eye(6) * 1e4    # a relocalising pose says nothing
@@ -34,11 +33,8 @@ class StandInCore(LatchedInputs):
     def on_population(self, pop: m.FlyPopulation) -> m.PoseEstimate | None:
         if self.hint is None:
             return None
-        T_odom_base = None
-        if pop.T_odom_camera is not None and self._calibration_msg is not None:
-            T_odom_base = pop.T_odom_camera @ invert(self._calibration_msg.T_base_camera)
-        elif pop.T_odom_camera is None:
-            T_odom_base = self.odometry.at(pop.header.stamp_ns)
+        calib = self._calibration_msg
+        T_odom_base = self.odom_base_of(pop, calib.T_base_camera if calib is not None else None)
         if T_odom_base is None:
             return None
         self.published += 1
