@@ -99,6 +99,19 @@ def test_a_wall_of_fit_flies_blocks_the_way_and_young_flies_do_not():
     assert cmd_wall.reason != "following field" or cmd_wall.linear_mps < cmd_free.linear_mps, cmd_wall
 
 
+def test_a_converged_field_takes_in_new_evidence_at_solve_hz_not_every_cycle():
+    core = _core()
+    _heading_after(core)                                 # converged on the empty corridor at t = 0.1 s
+    blocked_before = np.isinf(core.field_message(10**8).values).sum()
+    for seq in range(1, 4):
+        core.on_population(_wall_population(0.5, seq, camera_x=0.1 * seq))
+    period_ns = int(1e9 / core.settings.solve_hz)
+    core.cycle(10**8 + period_ns // 2)                   # the next command cycle: the last field still
+    assert np.isinf(core.field_message(10**8).values).sum() == blocked_before
+    core.cycle(10**8 + period_ns)                        # one solve period on: the wall is in the field
+    assert np.isinf(core.field_message(10**8).values).sum() > blocked_before + 20
+
+
 def test_planner_service_steers_towards_the_target_and_publishes_its_field(tmp_path, zenoh_port):
     proc = start_module("services.planner", "--extent", "-1", "-2", "6", "2", "--target", "4", "0",
                         port=zenoh_port, log_path=tmp_path / "planner.log")

@@ -4,7 +4,8 @@
 (``on_pose``, ``on_map_to_odom``, ``on_target``, ``on_calibration``, ``on_sonar_points``: each keeps the
 newest message); ``on_population(FlyPopulation)`` folds the fittest flies (:func:`common.fly.selection.
 fittest`) inside the trusted depth band into the evidence grid with the camera's view;
-``cycle(stamp_ns)`` applies a new target, folds a new sonar scan, solves within the budget and returns
+``cycle(stamp_ns)`` applies a new target, folds a new sonar scan, solves within the budget (a converged
+field at most ``solve_hz`` times a second) and returns
 the ``VelocityCommand``; ``field_message(stamp_ns)`` is the ``HarmonicField`` with its descent path.
 """
 from __future__ import annotations
@@ -37,6 +38,8 @@ class PlannerServiceConfig:
     rate: float = field(default=10.0, metadata={"help": "command rate (Hz)"})
     field_hz: float = field(default=1.0, metadata={"help": "field publication rate (Hz)"})
     solve_ms: float = field(default=40.0, metadata={"help": "relaxation budget per cycle (ms)"})
+    solve_hz: float = field(default=5.0, metadata={
+        "help": "most updates of a converged field per second (Hz); between them commands descend the last one"})
     sonar_range: float = field(default=0.8, metadata={
         "help": "sonar echoes nearer than this (m from base_link) are obstacles; farther ones are unused"})
     keep_fraction: float = field(default=0.5, metadata={
@@ -58,6 +61,8 @@ class PlannerServiceConfig:
         "help": "stay still and fold no flies until the localiser has a map (its first slam/map_to_odom); false: use fusion/pose alone"})
 
     def __post_init__(self):
+        if not (isinstance(self.solve_hz, (int, float)) and math.isfinite(self.solve_hz) and self.solve_hz > 0):
+            raise ValueError(f"solve_hz must be a positive number, got {self.solve_hz!r}")
         if not min(self.new_view_m, self.new_view_deg, self.new_view_s) > 0:
             raise ValueError(f"new_view_m, new_view_deg and new_view_s must be > 0, got {self.new_view_m}, "
                              f"{self.new_view_deg} and {self.new_view_s}")
@@ -118,6 +123,7 @@ class PlannerCore:
         self._converged_once = False      # the descent direction of a field never converged can point anywhere
         self._last_sonar_seq: int | None = None
         self._last_view: tuple[np.ndarray, int] | None = None   # camera pose and stamp of the last population folded
+        self._last_solve_ns: int | None = None
 
     # Latest-value inputs (single assignments: safe from a subscription thread).
     def on_pose(self, msg: m.PoseEstimate) -> None:
@@ -201,7 +207,14 @@ class PlannerCore:
         self._fold_sonar(T_map_base)
         # Until the field has converged once the robot waits, and the solver gets a larger budget.
         budget = self.settings.solve_ms if self._converged_once else 5 * self.settings.solve_ms
-        self.report = self.planner.solve(max_ms=budget)
+        # A converged field follows the evidence at solve_hz (evidence builds up over several populations;
+        # re-solving for every flicker of it near the threshold cost most of the planner's CPU).  A new
+        # target, or a field still converging, is solved every cycle.
+        settled = self._converged_once and self.report is not None and self.report.converged
+        if not (settled and self._last_solve_ns is not None
+                and 0 <= stamp_ns - self._last_solve_ns < 1e9 / self.settings.solve_hz):
+            self.report = self.planner.solve(max_ms=budget)
+            self._last_solve_ns = stamp_ns
         self._converged_once = self._converged_once or self.report.converged
         if T_map_base is None:
             cmd = m.VelocityCommand(stop=True, reason="no pose")
