@@ -5,8 +5,8 @@
 newest message); ``on_population(FlyPopulation)`` folds the fittest flies (:func:`common.fly.selection.
 fittest`) inside the trusted depth band into the evidence grid with the camera's view;
 ``cycle(stamp_ns)`` applies a new target, folds a new sonar scan, solves within the budget (a converged
-field at most ``solve_hz`` times a second) and returns
-the ``VelocityCommand``; ``field_message(stamp_ns)`` is the ``HarmonicField`` with its descent path.
+field at most ``solve_hz`` times a second) and returns the ``VelocityCommand``;
+``field_message(stamp_ns)`` is the ``HarmonicField`` with its descent path.
 """
 from __future__ import annotations
 
@@ -210,9 +210,9 @@ class PlannerCore:
         # A converged field follows the evidence at solve_hz (evidence builds up over several populations;
         # re-solving for every flicker of it near the threshold cost most of the planner's CPU).  A new
         # target, or a field still converging, is solved every cycle.
-        settled = self._converged_once and self.report is not None and self.report.converged
-        if not (settled and self._last_solve_ns is not None
-                and 0 <= stamp_ns - self._last_solve_ns < 1e9 / self.settings.solve_hz):
+        # (_converged_once implies a solve has run, so report and _last_solve_ns are set)
+        settled = self._converged_once and self.report.converged
+        if not settled or not 0 <= stamp_ns - self._last_solve_ns < 1e9 / self.settings.solve_hz:
             self.report = self.planner.solve(max_ms=budget)
             self._last_solve_ns = stamp_ns
         self._converged_once = self._converged_once or self.report.converged

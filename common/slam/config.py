@@ -50,7 +50,7 @@ class LocaliserConfig:
     loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
     loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
     loop_min_separation: int = 10       # ... and is at least this many keyframes older
-    loop_window: tuple = (1.0, 1.5, np.deg2rad(15.0))   # its registration's search half-widths (a lap's drift)
+    loop_window: tuple = (1.0, 1.5, np.deg2rad(15.0))   # its δ search half-widths: along, across the view, heading
     local_map_from_archive: bool = False   # choose the local map from every archived keyframe, not the window
 
 
