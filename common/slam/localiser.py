@@ -126,6 +126,8 @@ class FlyLocaliser:
         self.T_map_odom = np.eye(4)
         self._track = _Tracking()
         self._reference: ReferenceView | None = None      # photometric tracking reference (see _renew_reference)
+        self._newest_view: tuple | None = None    # (T_map_cam, view flies) of the newest registered update
+                                                  # (or the first, which defines the map)
         self._next_id = 0
         self._rng = np.random.default_rng(seed)
         self.backend = KeyframeGraph(self.config, planar=self.config.odometry == "wheels") if self.config.pose_graph else None
@@ -496,6 +498,7 @@ class FlyLocaliser:
                 self.T_map_odom = T_map_base @ invert(T_odom_base)
             if view_flies is not None and (registered or self._reference is None):
                 self._renew_reference(T_map_base, view_flies)
+                self._newest_view = (T_map_base @ self.T_base_camera, view_flies)
             self._track_update(stamp_ns, T_map_base)
             self._updates_since_fix = 0 if registered else self._updates_since_fix + 1
             anchor = self.keyframes[-1] if self.keyframes else None
@@ -529,6 +532,8 @@ class FlyLocaliser:
                                                         search=source == "none")
             if fix is None and source == "constant velocity":
                 fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
+            if fix is None:
+                fix = self._photometric_from_newest_view(new_pyramid, T_pred, source)
             if source == "odometry" and 0 < abs(self._fast_turn_since_fix) <= c.max_slip_rad:
                 fix = self._slip_hypothesis(new_pyramid, T_pred, fix)
             if fix is not None:
@@ -598,6 +603,29 @@ class FlyLocaliser:
         positions, fit, image, image_pyramid = view_flies
         self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
                                          c.photometric_levels, image_pyramid)
+
+    def _photometric_from_newest_view(self, new_pyramid, T_pred: np.ndarray, source: str):
+        """A fix against the newest registered view when the tracking reference gave none, or None.
+
+        The reference is renewed only every few frames, and its fittest flies may crowd at one image
+        edge (one well-textured near wall): a robot turning away from that edge loses sight of them all
+        within a frame or two while the view itself is still well tracked.  The newest view, with its
+        trusted flies spread over the image, overlaps the new image most; it becomes the reference when
+        it gives the fix."""
+        if self._newest_view is None or self._reference is None:
+            return None
+        T_map_cam, (positions, fit, image, image_pyramid) = self._newest_view
+        c = self.config
+        held = self._reference
+        self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
+                                         c.photometric_levels, image_pyramid, K=self.calibration.K_left,
+                                         trusted_fraction=c.keep_fraction)
+        fix, _ = self._photometric(new_pyramid, T_pred, T_pred, source)
+        if fix is None and source != "odometry":
+            fix, _ = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
+        if fix is None:
+            self._reference = held
+        return fix
 
     def _photometric(self, new_pyramid, T_start: np.ndarray, T_pred: np.ndarray, source: str, search: bool = False):
         """(Fix, '') from aligning the tracking reference's flies into the new image from ``T_start``,

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.fly.selection import fittest, spread_fittest
 from common.geometry import invert
 from common.registration.photometric import align_flies, coarse_search, pyramid
 
@@ -33,14 +34,26 @@ class ReferenceView:
 
 
 def reference_view(T_map_cam, positions_cam, fitness, image, count: int, near_m: float, levels: int,
-                   image_pyramid: list[np.ndarray] | None = None) -> ReferenceView:
-    """The ``count`` fittest flies in front of the camera (beyond ``near_m``) with their image (and
-    its pyramid, when the caller already built it from that image)."""
+                   image_pyramid: list[np.ndarray] | None = None, K: np.ndarray | None = None,
+                   trusted_fraction: float = 1.0) -> ReferenceView:
+    """``count`` flies in front of the camera (beyond ``near_m``) with their image (and its pyramid,
+    when the caller already built it from that image).  With the intrinsics ``K`` they are the
+    trusted (``fittest(fitness, trusted_fraction)``) flies spread over the image
+    (common.fly.selection.spread_fittest), else simply the fittest."""
     P = np.asarray(positions_cam, np.float32)
     f = np.asarray(fitness, np.float32)
-    ok = np.flatnonzero(np.isfinite(P).all(1) & np.isfinite(f) & (f > 0) & (P[:, 2] > near_m))
-    keep = ok[np.argsort(-f[ok], kind="stable")[:count]]
+    ok = np.isfinite(P).all(1) & np.isfinite(f) & (f > 0) & (P[:, 2] > near_m)
     grey = image if image.ndim == 2 else image.mean(axis=2).astype(np.uint8)
+    if K is None:
+        ok = np.flatnonzero(ok)
+        keep = ok[np.argsort(-f[ok], kind="stable")[:count]]
+    else:
+        trusted = fittest(f, trusted_fraction)
+        trusted = trusted[ok[trusted]]
+        z = P[trusted, 2].astype(np.float64)
+        u = K[0, 0] * P[trusted, 0] / z + K[0, 2]
+        v = K[1, 1] * P[trusted, 1] / z + K[1, 2]
+        keep = trusted[spread_fittest(u, v, f[trusted], count, grey.shape[1], grey.shape[0])]
     return ReferenceView(np.asarray(T_map_cam, float).copy(), P[keep].copy(), f[keep].copy(),
                          np.ascontiguousarray(grey), levels, image_pyramid)
 
