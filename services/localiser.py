@@ -223,7 +223,7 @@ def body(node, args) -> int:
         node.rates["keyframes"] = float(len(core.keyframes))
         if out.estimate is not None:
             map_changed |= out.estimate.keyframe_added
-            if tum is not None:
+            if tum is not None and core.keyframes:     # the trajectory starts with the map
                 tum.append(out.pose.header.stamp_ns, out.estimate.T_map_base)
         if tum is not None and time.monotonic() - last_tum > run.tum_period_s:
             with lock:

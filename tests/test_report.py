@@ -15,10 +15,11 @@ from deploy.report import format_pipeline_summary, pipeline_summary
 def test_summary_reports_accuracy_target_and_files(tmp_path):
     stamps = np.arange(20, dtype=np.int64) * 100_000_000
     truth = np.array([planar_pose(0.1 * k, 0.0, 0.0) for k in range(20)])
-    est = truth.copy()
-    est[:, 1, 3] += 0.05                      # 5 cm to the side all along
+    # the map starts at frame 5 (its origin there), and the estimate drifts 5 cm to the side by the end
+    est = np.linalg.inv(truth[5]) @ truth[5:]
+    est[:, 1, 3] += 0.05 * np.arange(15) / 14
     write_tum(tmp_path / "truth.tum", stamps, truth)
-    write_tum(tmp_path / "estimated.tum", stamps, est)
+    write_tum(tmp_path / "estimated.tum", stamps[5:], est)
     (tmp_path / "run.json").write_text(json.dumps({"services": {
         "sim": {"progress": 20, "restarts": 0},
         "evolver": {"progress": 18, "restarts": 1, "rates": {"frames_skipped": 2.0, "generations_per_s": 150.0}}}}))
@@ -29,7 +30,9 @@ def test_summary_reports_accuracy_target_and_files(tmp_path):
     s = pipeline_summary(tmp_path)
     assert s["frames"] == 20 and s["frames_used_by_evolver"] == 18 and s["frames_skipped"] == 2
     assert s["target"] == "reached"           # the planner's own shutdown is not the outcome
-    assert abs(s["final_position_error_m"] - 0.05) < 1e-6 and s["ate_rmse_m"] < 1e-3  # ATE aligns, final error does not
+    # ATE aligns the whole path (a straight drift is a small rotation); the final error ties the two
+    # frames only where the map started
+    assert abs(s["final_position_error_m"] - 0.05) < 1e-6 and s["ate_rmse_m"] < 1e-3
     assert abs(s["true_distance_to_target_m"] - 0.1) < 1e-6
     assert s["restarts"] == {"evolver": 1}
     text = format_pipeline_summary(s)

@@ -405,6 +405,10 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
             int(min_flies), float(huber_px), r, valid, H)
         total_iters += its
         T = orthonormalised(T)
+        if status == 1 and level > 0:
+            # a coarse level only widens the basin: with too few of its (subsampled, border-trimmed)
+            # flies in view, the finer levels carry on from the motion so far
+            continue
         if status == 1:
             return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, used, total_iters, False,
                              f"too few flies in view: {used} (need {min_flies})")

@@ -496,14 +496,18 @@ class FlyLocaliser:
                         self._apply_correction(C)
             if T_odom_base is not None:
                 self.T_map_odom = T_map_base @ invert(T_odom_base)
-            if view_flies is not None and (registered or self._reference is None):
-                self._renew_reference(T_map_base, view_flies)
-                self._newest_view = (T_map_base @ self.T_base_camera, view_flies)
-            self._track_update(stamp_ns, T_map_base)
-            self._updates_since_fix = 0 if registered else self._updates_since_fix + 1
-            anchor = self.keyframes[-1] if self.keyframes else None
-            self._history.append((stamp_ns, anchor, T_map_base.copy() if anchor is None
-                                  else invert(anchor.T_map_base) @ T_map_base))
+            # Before the map exists the pose is a placeholder, not a measurement: it must neither teach
+            # the motion model a velocity (live, the first populations come seconds apart while the
+            # flies converge, and a 'standing' camera then refuses the first true motion), nor anchor a
+            # tracking reference at the map's origin, nor enter the trajectory.
+            if self.keyframes:
+                if view_flies is not None and (registered or self._reference is None):
+                    self._renew_reference(T_map_base, view_flies)
+                    self._newest_view = (T_map_base @ self.T_base_camera, view_flies)
+                self._track_update(stamp_ns, T_map_base)
+                self._updates_since_fix = 0 if registered else self._updates_since_fix + 1
+                anchor = self.keyframes[-1]       # the trajectory starts with the map
+                self._history.append((stamp_ns, anchor, invert(anchor.T_map_base) @ T_map_base))
             return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
 
         def fixed(T_map_base, cov, delta=float("nan"), links=()):
@@ -530,10 +534,15 @@ class FlyLocaliser:
             # no motion known yet (the first frames of a visual-only run): search the lattice first
             fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source,
                                                         search=source == "none")
+            # the reference lost from view (or the motion unknown), not a fix the prediction
+            # disbelieves: the newest view, aligned from the same prediction, would only find a
+            # minimum nearer to it
+            lost = fix is None and (source == "none"
+                                    or self._reference_share_in_view(T_pred) < c.photometric_min_inliers)
+            if fix is None and lost:
+                fix = self._photometric_from_newest_view(new_pyramid, T_pred, source)
             if fix is None and source == "constant velocity":
                 fix, photometric_reason = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
-            if fix is None:
-                fix = self._photometric_from_newest_view(new_pyramid, T_pred, source)
             if source == "odometry" and 0 < abs(self._fast_turn_since_fix) <= c.max_slip_rad:
                 fix = self._slip_hypothesis(new_pyramid, T_pred, fix)
             if fix is not None:
@@ -604,8 +613,23 @@ class FlyLocaliser:
         self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
                                          c.photometric_levels, image_pyramid)
 
+    def _reference_share_in_view(self, T_map_base: np.ndarray) -> float:
+        """Share of the tracking reference's flies inside the left image of a camera at ``T_map_base``."""
+        ref = self._reference
+        if ref is None or len(ref.points) == 0:
+            return 0.0
+        T_cam_ref = invert(T_map_base @ self.T_base_camera) @ ref.T_map_cam
+        P = transform_points(T_cam_ref, ref.points.astype(np.float64))
+        K, cal = self.calibration.K_left, self.calibration
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2]
+            v = K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]
+        inside = (P[:, 2] > 0) & (u >= 0) & (u < cal.width) & (v >= 0) & (v < cal.height)
+        return float(np.mean(inside))
+
     def _photometric_from_newest_view(self, new_pyramid, T_pred: np.ndarray, source: str):
-        """A fix against the newest registered view when the tracking reference gave none, or None.
+        """A fix against the newest registered view when the tracking reference lost sight of the
+        flies, or None.
 
         The reference is renewed only every few frames, and its fittest flies may crowd at one image
         edge (one well-textured near wall): a robot turning away from that edge loses sight of them all
