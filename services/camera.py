@@ -214,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         calib = load_calibration(args.calibration, args.units_m)
         pipeline = StereoPipeline(calib, args.encoding, args.quality)
-        capture = StereoCapture(calib, args.left, args.right, args.sbs, loop=args.loop,
+        # an empty value is no value: a launch file passes every source option, the unused ones empty
+        capture = StereoCapture(calib, args.left or None, args.right or None, args.sbs or None, loop=args.loop,
                                 calibration_name=f"calibration {', '.join(args.calibration)}", fps=args.fps)
     except (CalibrationError, CameraError) as e:
         print(f"flyslam camera: {e}", file=sys.stderr)
