@@ -36,8 +36,10 @@ dead bridge's ``rerun --serve-web`` child must not keep its port). Children get 
 (SIGTERM when the supervisor dies, whatever killed it), and a watchdog process, in its own session,
 holds the list of live groups through a pipe: when the pipe closes without a goodbye (the supervisor
 was SIGKILLed), it SIGTERMs every group, SIGKILLs what is left after a grace period, grandchildren
-included, marks ``run.json`` and writes the run's ``summary.json`` if the launch file asks for one. Exit status: 0, or 1 when a required service gave up, 2 for a bad
-launch file or flag.
+included, marks ``run.json`` and writes the run's ``summary.json`` if the launch file asks for one. A service
+that exits with status 2 (a bad file or flag, by flyslam's convention) is not restarted: it would fail
+the same way; its last log line (its one-line error) is shown. Exit status: 0, or 1 when a required
+service gave up, 2 for a bad launch file or flag.
 """
 from __future__ import annotations
 
@@ -63,6 +65,7 @@ from common.messages import DecodeError, Heartbeat, decode
 log = logging.getLogger("flyslam.supervisor")
 
 ROOT = Path(__file__).resolve().parent.parent
+BAD_INPUT_STATUS = 2      # a flyslam command's exit status for a bad file or flag
 DEFAULT_LAUNCH = ROOT / "deploy" / "launch" / "demo.toml"
 RESTART_POLICIES = ("never", "on-failure", "always")
 
@@ -342,6 +345,7 @@ class Child:
     token_lost_at: float | None = None
     last_heartbeat: dict = field(default_factory=dict)
     reniced: bool = False
+    error: str = ""         # the last line the service wrote before it failed for good
     watchdog: Watchdog | None = None
 
     def start(self, env: dict) -> None:
@@ -553,10 +557,14 @@ class Supervisor:
                 self.request_stop(f"{spec.name} finished")
             return
         how = f"exited with status {rc}" if rc >= 0 else f"was killed by signal {-rc}"
-        if spec.restart == "never" or c.restarts >= spec.max_restarts:
-            c.state = "gave-up" if spec.restart != "never" else "failed"
-            log.error("%s %s; %s", spec.name, how,
-                      "no restarts allowed" if spec.restart == "never" else f"gave up after {c.restarts} restarts")
+        bad_input = rc == BAD_INPUT_STATUS
+        if spec.restart == "never" or c.restarts >= spec.max_restarts or bad_input:
+            c.state = "gave-up" if spec.restart != "never" and not bad_input else "failed"
+            c.error = last_line(c.log_path)
+            why = ("no restarts allowed" if spec.restart == "never" else
+                   "a bad file or flag, not restarted (it would fail the same way)" if bad_input else
+                   f"gave up after {c.restarts} restarts")
+            log.error("%s %s; %s%s", spec.name, how, why, f": {c.error}" if c.error else "")
             if spec.required:
                 self.failed_required.append(spec.name)
                 self.request_stop(f"required service {spec.name} failed")
@@ -582,11 +590,24 @@ class Supervisor:
     def summary(self) -> dict:
         with self._lock:
             services = {c.spec.name: {"state": c.state, "restarts": c.restarts, "exit_codes": list(c.exit_codes),
+                                      **({"error": c.error} if c.error else {}),
                                       "pid": c.proc.pid if c.proc is not None else None,
                                       "log": str(c.log_path), **c.last_heartbeat}
                         for c in self.children}
         return {"state": self.state, "supervisor_pid": os.getpid(), "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                 "stop_reason": self.stop_reason, "failed_required": self.failed_required, "services": services}
+
+
+def last_line(path: Path, tail_bytes: int = 4096) -> str:
+    """The last non-empty line of a log file ('' when there is none): a failed flyslam command's
+    one-line error."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - tail_bytes))
+            lines = [ln.strip() for ln in f.read().decode(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1][:300] if lines else ""
 
 
 def format_summary(summary: dict) -> str:
@@ -597,6 +618,8 @@ def format_summary(summary: dict) -> str:
                      f"{','.join(str(x) for x in s['exit_codes']) or '-'}")
     if summary["failed_required"]:
         lines.append(f"\nFAILED: required service(s) gave up: {', '.join(summary['failed_required'])}")
+        lines += [f"  {name}: {summary['services'][name]['error']}" for name in summary["failed_required"]
+                  if summary["services"].get(name, {}).get("error")]
     return "\n".join(lines)
 
 

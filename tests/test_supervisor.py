@@ -124,8 +124,7 @@ def test_required_service_giving_up_fails_the_run(tmp_path, zenoh_port):
     launch = """
 [[service]]
 name = "broken"
-module = "services.replay"
-args = ["/nonexistent/recording.mcap"]
+module = "services.no_such_module"
 restart = "on-failure"
 max_restarts = 1
 backoff_s = 0.1
@@ -134,6 +133,26 @@ backoff_s = 0.1
     out, _ = sup.communicate(timeout=60)
     assert sup.returncode == 1
     assert "FAILED" in out and "broken" in out and "gave up after 1 restarts" in out
+    assert "No module named services.no_such_module" in out.split("FAILED")[-1]
+
+
+def test_a_service_given_a_bad_file_is_not_restarted_and_says_why(tmp_path, zenoh_port):
+    launch = """
+[[service]]
+name = "broken"
+module = "services.replay"
+args = ["/nonexistent/recording.mcap"]
+restart = "on-failure"
+max_restarts = 3
+backoff_s = 0.1
+"""
+    sup = start_supervisor(tmp_path, zenoh_port, launch, "--duration", "60")
+    out, _ = sup.communicate(timeout=60)
+    assert sup.returncode == 1
+    assert "not restarted" in out and "restarting broken" not in out
+    assert "broken: " in out.split("FAILED")[-1] and "no such recording" in out.split("FAILED")[-1]
+    record = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert record["services"]["broken"]["restarts"] == 0 and "no such recording" in record["services"]["broken"]["error"]
 
 
 def test_bad_launch_file_gives_a_clear_error(tmp_path, zenoh_port):
