@@ -10,6 +10,9 @@ reference ORB + PnP odometry of ``bench/stereo_vo_reference.py``. Both are score
 
 ``--frames A:B`` (repeatable) runs frames A..B-1 of each clip as if the recording started at A, e.g.
 ``--frames 0:50 --frames 50:100`` for the halves settings are chosen on and checked on.
+``--variants`` also runs each clip changed as ``bench/real_variants.py`` describes (every 2nd / 3rd
+frame, reversed, half resolution, a 640-px crop, base_link at the camera), keyed ``<clip>~<variant>``:
+sequences flyslam has not seen, made from the one it has.
 Writes ``bench/out/real/<clip>[_A-B]/trajectories.png`` (top view, map x right / y up; the estimates
 aligned on the first truth pose). With --json the last stdout line is one JSON object: per run (key
 ``<clip>`` or ``<clip>@A:B``) ``flyslam_ate_m``, ``reference_ate_m``, ``flyslam_drift_pct``,
@@ -31,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench import real_variants  # noqa: E402
 from bench.stereo_vo_reference import StereoVO  # noqa: E402
 from common import messages as m  # noqa: E402
 from common.geometry import invert  # noqa: E402
@@ -69,10 +73,10 @@ def find_clips(data: Path) -> list[Clip]:
 
 def cached_recording(clip: Clip) -> Path:
     """The clip as a flyslam recording, imported on first use (written aside, then renamed into place)
-    and again whenever an importer module is newer than the cached recording."""
+    and again whenever an importer module (or the variants') is newer than the cached recording."""
     path = CACHE / f"{clip.name}.mcap"
     importers = Path(write_recording.__code__.co_filename).parent
-    newest = max(f.stat().st_mtime for f in importers.glob("*.py"))
+    newest = max(f.stat().st_mtime for f in [*importers.glob("*.py"), Path(real_variants.__file__)])
     if not path.is_file() or path.stat().st_mtime < newest:
         CACHE.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".partial")
@@ -185,23 +189,47 @@ def print_table(runs: dict[str, dict]) -> None:
               f"{r['flyslam_keyframes']} keyframes, path {r['path_length_m']:.1f} m")
 
 
+def variant_summary(runs: dict[str, dict]) -> dict:
+    """Over the variant runs (keys with ``~``): how many flyslam did no worse than the reference on, and
+    each method's worst ATE in % of the path ({} without variants)."""
+    chosen = [r for key, r in runs.items() if "~" in key]
+    if not chosen:
+        return {}
+    return {"runs": len(chosen),
+            "flyslam_no_worse": sum(r["flyslam_ate_m"] <= r["reference_ate_m"] for r in chosen),
+            "flyslam_worst_ate_pct": max(r["flyslam_ate_pct"] for r in chosen),
+            "reference_worst_ate_pct": max(r["reference_ate_pct"] for r in chosen)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="folder of real clips")
     ap.add_argument("--frames", type=parse_range, action="append", default=None, metavar="A:B",
                     help="run frames A..B-1 only (repeatable; default: the whole clip)")
     ap.add_argument("--clip", action="append", default=None, help="only this clip (repeatable)")
+    ap.add_argument("--variants", nargs="*", default=None, metavar="NAME",
+                    help=f"also run each clip's variants (default all: {', '.join(real_variants.VARIANTS)})")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     clips = [c for c in find_clips(args.data) if args.clip is None or c.name in args.clip]
     if not clips:
         print(f"bench/real.py: no real clip with ground truth under {args.data}", file=sys.stderr)
         return 2
+    if args.variants is not None:
+        names = args.variants or list(real_variants.VARIANTS)
+        unknown = sorted(set(names) - set(real_variants.VARIANTS))
+        if unknown:
+            print(f"bench/real.py: unknown variant(s) {', '.join(unknown)} (use {', '.join(real_variants.VARIANTS)})",
+                  file=sys.stderr)
+            return 2
+        clips += [Clip(f"{c.name}~{v}", lambda c=c, v=v: real_variants.variant(c.load, v)) for c in list(clips)
+                  for v in names]
     load_before = os.getloadavg()
     runs = {}
     for clip in clips:
-        for first, stop in args.frames or [(0, None)]:
-            key = clip.name if args.frames is None else f"{clip.name}@{first}:{'' if stop is None else stop}"
+        variant = "~" in clip.name          # variants run whole: they are other sequences, not halves
+        for first, stop in [(0, None)] if variant else args.frames or [(0, None)]:
+            key = clip.name if args.frames is None or variant else f"{clip.name}@{first}:{'' if stop is None else stop}"
             try:
                 runs[key] = bench_clip(clip, first, stop)
             except (DatasetLayoutError, ValueError) as e:
@@ -211,8 +239,14 @@ def main(argv=None) -> int:
     print_table(runs)
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (at start {load_before[0]:.2f}); "
           f"plots in {OUT}/")
+    variants = variant_summary(runs)
+    if variants:
+        print(f"variants: flyslam's ATE no worse than the reference's in {variants['flyslam_no_worse']} of "
+              f"{variants['runs']}; worst ATE flyslam {variants['flyslam_worst_ate_pct']} % of the path, "
+              f"reference {variants['reference_worst_ate_pct']} %")
     if args.json:
-        print(json.dumps({"clips": runs, "load_avg": [round(x, 2) for x in load],
+        print(json.dumps({"clips": runs, **({"variants": variants} if variants else {}),
+                          "load_avg": [round(x, 2) for x in load],
                           "load_avg_before": [round(x, 2) for x in load_before]}))
     return 0
 

@@ -82,6 +82,10 @@ KEY_FIGURES: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("reference", "clips.kitti-00-frames-0-99@0:50.reference_ate_m", "m"),
         ("frames 50-99 ATE: flyslam", "clips.kitti-00-frames-0-99@50:100.flyslam_ate_m", "m"),
         ("reference", "clips.kitti-00-frames-0-99@50:100.reference_ate_m", "m"),
+        ("variants (bench/real_variants.py): flyslam no worse than the reference in", "variants.flyslam_no_worse", ""),
+        ("of", "variants.runs", ""),
+        ("worst ATE: flyslam", "variants.flyslam_worst_ate_pct", "% of the path"),
+        ("reference", "variants.reference_worst_ate_pct", "% of the path"),
     ]),
     "pipeline": ("whole pipeline at 30 frames/s, 640×480, every service incl. bridge and recorder", [
         ("pose latency p50", "pose_latency_p50_ms", "ms"),

@@ -1,0 +1,70 @@
+"""Variants of a real clip that look like the sequences flyslam has not seen: a faster vehicle, a robot
+driving backwards, other cameras, a rig mounted elsewhere.  ``bench/real.py --variants`` runs each
+beside the clip itself, so a setting tuned to the clip shows up as a variant that fails.
+
+Each variant is a :class:`common.importers.StereoDataset` made from the clip's own files, with the
+ground truth re-expressed for it (poses of the frames kept, in the variant's base frame):
+
+* ``stride2`` / ``stride3``: every 2nd / 3rd frame, at the clip's frame interval × 2 / × 3 (KITTI 00:
+  1.7 / 2.6 m a frame, a car at 60 / 90 km/h);
+* ``reverse``: the frames backwards (the camera drives backwards through the same street);
+* ``half``: images and intrinsics at half resolution (a 620×188 camera);
+* ``crop640``: the central 640 columns (a narrower field of view: 48° instead of 82°);
+* ``mount0``: the rig's ``T_base_camera`` without its height (base_link at the camera, as a
+  calibration without a mounting gives it).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from common.geometry import invert
+from common.importers import StereoDataset
+from common.importers.base import C_BODY_OPTICAL
+
+VARIANTS = ("stride2", "stride3", "reverse", "half", "crop640", "mount0")
+
+
+def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
+    """The clip ``load()`` gives, changed as ``name`` says (one of VARIANTS)."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r} (use one of {', '.join(VARIANTS)})")
+    ds = load()
+    if len(ds.truth_stamps_ns) != len(ds.stamps_ns) or not np.array_equal(ds.truth_stamps_ns, ds.stamps_ns):
+        raise ValueError(f"{ds.name}: variants need one ground-truth pose per frame")
+    calib, n = ds.calibration, len(ds.stamps_ns)
+    index = np.arange(n)
+    step_ns = int(np.median(np.diff(ds.stamps_ns))) if n > 1 else 100_000_000
+    stride = int(name[6:]) if name.startswith("stride") else 1
+    index = index[::stride] if stride > 1 else index[::-1] if name == "reverse" else index
+    scale = 0.5 if name == "half" else 1.0
+    x0 = (calib.width - 640) // 2 if name == "crop640" else 0
+    if scale != 1.0:
+        calib = calib.scaled(scale)
+    if x0:
+        K_left, K_right = calib.K_left.copy(), calib.K_right.copy()
+        K_left[0, 2] -= x0
+        K_right[0, 2] -= x0
+        calib = replace(calib, width=640, cx_left=calib.cx_left - x0, cx_right=calib.cx_right - x0,
+                        K_left=K_left, K_right=K_right)
+    T_base_camera = C_BODY_OPTICAL if name == "mount0" else ds.calibration.T_base_camera
+    calib = replace(calib, T_base_camera=np.asarray(T_base_camera, float).copy())
+    # truth: T_map_base of the frames kept, re-based on the first kept frame and on the new mounting
+    T_map_cam = ds.truth_poses[index] @ ds.calibration.T_base_camera
+    T_cam0_cam = invert(T_map_cam[0]) @ T_map_cam
+    truth = calib.T_base_camera @ T_cam0_cam @ invert(calib.T_base_camera)
+    stamps = ds.stamps_ns[0] + np.arange(len(index), dtype=np.int64) * step_ns * stride
+
+    def load_pair(i: int):
+        left, right = ds.load_pair(int(index[i]))
+        if scale != 1.0:
+            size = (calib.width, calib.height)
+            left, right = (cv2.resize(img, size, interpolation=cv2.INTER_AREA) for img in (left, right))
+        if x0:
+            left, right = (np.ascontiguousarray(img[:, x0:x0 + 640]) for img in (left, right))
+        return left, right
+
+    return StereoDataset(f"{ds.name}, {name}", calib, stamps, load_pair, stamps, truth)
