@@ -63,6 +63,11 @@ class CameraConfig:
     vignetting: float = 0.25        # brightness loss at the image corners
     motion_blur_samples: int = 1    # >1 averages that many poses over exposure_time_s
     exposure_time_s: float = 0.012
+    # a hand-held rig: the camera sways (roll, pitch and half as much yaw, degrees) and bobs (metres)
+    # about the planar path, periodically (sway_period_s; the bob at twice the rate, one per step)
+    sway_deg: float = 0.0
+    bob_m: float = 0.0
+    sway_period_s: float = 1.2
 
 
 @dataclass
@@ -245,13 +250,16 @@ def _config(ctx: _Ctx, cls, data, where: str):
 
 def _validate_configs(ctx: _Ctx, cam: CameraConfig, odo: OdometryConfig, son: SonarConfig):
     positive = [("camera", cam, ("width", "height", "hfov_deg", "baseline", "height_m", "rate_hz", "exposure",
-                                 "gain_right", "exposure_time_s", "motion_blur_samples")),
+                                 "gain_right", "exposure_time_s", "motion_blur_samples", "sway_period_s")),
                 ("odometry", odo, ("rate_hz", "wheel_radius", "track_width", "ticks_per_rev", "burst_duration_s")),
                 ("sonar", son, ("count", "rate_hz", "beam_width_deg", "max_range", "rays", "critical_angle_deg"))]
     for name, obj, keys in positive:
         for k in keys:
             if getattr(obj, k) <= 0:
                 raise ctx.err(f"{name}.{k}", f"must be positive, got {getattr(obj, k)}")
+    if not (0 <= cam.sway_deg < 45 and 0 <= cam.bob_m < cam.height_m):
+        raise ctx.err("camera.sway_deg", f"sway must be in [0, 45)° and bob_m in [0, height_m), got "
+                                         f"{cam.sway_deg}° and {cam.bob_m} m")
     if not cam.hfov_deg < 170:
         raise ctx.err("camera.hfov_deg", f"must be below 170, got {cam.hfov_deg}")
     for k in ("radius_error_left", "radius_error_right", "track_error"):

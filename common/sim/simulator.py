@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from common.camera import StereoCalibration
-from common.geometry import R_BODY_OPTICAL, make_transform, planar_pose, rot_y
+from common.geometry import R_BODY_OPTICAL, make_transform, planar_pose, rot_x, rot_y, rot_z
 from common.sim.motion import CommandMotion, make_motion
 from common.sim.render import Renderer, noise_table
 from common.sim.scenario import Scenario
@@ -114,6 +114,7 @@ class Simulator:
         self._next = dict.fromkeys(self._periods, 0)
         self._next["odometry"] = self._periods["odometry"]  # the first odometry sample covers one period
         self._history = deque([(0, *self.pose)])
+        self._swaying = cam.sway_deg > 0 or cam.bob_m > 0
 
     # ------------------------------------------------------------------------------------ control
     @property
@@ -132,11 +133,22 @@ class Simulator:
 
     def truth_pose(self) -> np.ndarray:
         """4×4 T_map_base now."""
-        return planar_pose(*self.pose)
+        return self.truth_at(self.time_ns)
 
     def truth_at(self, stamp_ns: int) -> np.ndarray:
-        """4×4 T_map_base at a stamp within the last few seconds (linear interpolation of the history)."""
-        return planar_pose(*self._pose_at(stamp_ns))
+        """4×4 T_map_base at a stamp within the last few seconds (linear interpolation of the history),
+        with the hand-held sway when the camera has one."""
+        T = planar_pose(*self._pose_at(stamp_ns))
+        return T @ self._sway(stamp_ns) if self._swaying else T
+
+    def _sway(self, stamp_ns: int) -> np.ndarray:
+        """The hand-held rig's motion about the planar path at ``stamp_ns``: roll, pitch and yaw
+        oscillations of incommensurate periods (so they never line up), and a bob at twice the rate."""
+        cam = self.camera_config
+        w = 2 * np.pi * stamp_ns * 1e-9 / cam.sway_period_s
+        a = np.deg2rad(cam.sway_deg)
+        R = rot_z(0.5 * a * np.sin(0.73 * w + 2.0)) @ rot_y(a * np.sin(1.37 * w + 1.0)) @ rot_x(a * np.sin(w))
+        return make_transform(R, [0.0, 0.0, cam.bob_m * np.sin(2 * w)])
 
     def clearance(self) -> float:
         """Distance from the robot body (its radius) to the nearest obstacle now; ≤ 0 is a collision."""
