@@ -32,7 +32,7 @@ class LocaliserConfig:
     gate_chi2: float = 16.0             # a δ registration this far (Mahalanobis²) from the prediction is refused
     use_stereo_model: bool = True       # δ with depth-uncertainty and footprint weights (StereoModel)
     min_view_coverage: float = 0.5      # a view the map covers less than this gets a keyframe even unregistered
-    max_turn_rate_radps: float = np.deg2rad(20.0)   # turning faster (wheels): neither register nor add keyframes
+    max_turn_rate_radps: float = np.deg2rad(20.0)   # turning faster (wheels): no δ, no keyframes (tracking goes on)
     max_slip_rad: float = np.deg2rad(15.0)   # a faster turn up to this large may be a wheel slipping (see _slip_hypothesis)
     tracking_gap_s: float = 0.25        # within this of a fix δ searches from one seed at the prediction
     tracking_max_turn_rate_radps: float = np.deg2rad(5.0)   # ... and not while turning faster than this

@@ -6,8 +6,8 @@ common.slam.core):
 1. keep the population's fittest flies (``keep_fraction``) nearer than ``max_depth_m``, in base_link;
 2. predict the pose: ``T_map_odom · T_odom_base`` from wheel odometry, or a 6-DoF constant-velocity
    model of the localiser's own estimates (``odometry = "visual"``, or no odometry given);
-3. while wheel odometry says the robot turns faster than ``max_turn_rate_radps``, odometry carries
-   the pose;
+3. while wheel odometry says the robot turns faster than ``max_turn_rate_radps``, only the
+   photometric tracking below may fix the pose (no δ, no keyframe); else odometry carries it;
 4. with the frame's left image: track photometrically — align the reference view's flies into the
    image on their neighbourhoods (common.slam.tracking), from the prediction, or after a coarse lattice
    search when no motion is known yet;
@@ -514,19 +514,22 @@ class FlyLocaliser:
                 self._history.append((stamp_ns, anchor, invert(anchor.T_map_base) @ T_map_base))
             return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
 
-        def fixed(T_map_base, cov, delta=float("nan"), links=()):
+        def fixed(T_map_base, cov, delta=float("nan"), links=(), may_add=True):
             self._last_fix_stamp = stamp_ns
             self._driven_since_fix = 0.0
             self._turned_since_fix = 0.0
             self._fast_turn_since_fix = 0.0
-            return finish(T_map_base, "ok", True, cov, delta, links=links)
+            return finish(T_map_base, "ok", True, cov, delta, may_add=may_add, links=links)
 
         if not self.keyframes and generation is not None and generation < c.min_generations:
             return finish(T_pred, f"odometry only: waiting for the flies to converge (generation "
                                   f"{generation} < {c.min_generations})", False, cov_pred, may_add=False)
-        # Before the first keyframe too: a map started from a population evolved while turning fast is
-        # the worst case of the bent map this limit prevents.
-        if self._turn_rate > c.max_turn_rate_radps:
+        # Turning faster than max_turn_rate_radps (wheel odometry), δ and keyframes wait for the turn to
+        # end, but the neighbourhoods may still track it (below, from the odometry's prediction).  No map
+        # starts then: a map started from a population evolved while turning fast is the worst case of
+        # the bent map this limit prevents.
+        turning_fast = self._turn_rate > c.max_turn_rate_radps
+        if turning_fast and not self.keyframes:
             return finish(T_pred, f"odometry only: turning at {np.rad2deg(self._turn_rate):.0f}°/s "
                                   f"(> {np.rad2deg(c.max_turn_rate_radps):.0f}°/s)", False, cov_pred, may_add=False)
         if not self.keyframes:
@@ -552,7 +555,10 @@ class FlyLocaliser:
                 fix = self._slip_hypothesis(new_pyramid, T_pred, fix)
             if fix is not None:
                 self._fit_residuals.append(fix.residual)
-                return fixed(fix.T_map_base, fix.covariance)
+                return fixed(fix.T_map_base, fix.covariance, may_add=not turning_fast)
+        if turning_fast:
+            return finish(T_pred, f"odometry only: turning at {np.rad2deg(self._turn_rate):.0f}°/s "
+                                  f"(> {np.rad2deg(c.max_turn_rate_radps):.0f}°/s)", False, cov_pred, may_add=False)
         if len(points) < c.min_flies:
             why = f"; photometric: {photometric_reason}" if photometric_reason else ""
             return finish(T_pred, f"odometry only: {len(points)} usable flies (< {c.min_flies}){why}", False, cov_pred)
