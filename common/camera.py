@@ -78,6 +78,12 @@ class StereoCalibration:
         return self.cx_right - self.cx_left
 
     @property
+    def K_rectified(self) -> np.ndarray:
+        """3×3 intrinsics of the rectified left image, the one every algorithm sees (``K_left`` is the
+        raw camera's, before rectification: the same only for an already-rectified source)."""
+        return np.array([[self.fx, 0.0, self.cx_left], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
     def P_left(self) -> np.ndarray:
         return np.array([[self.fx, 0, self.cx_left, 0], [0, self.fy, self.cy, 0], [0, 0, 1, 0]])
 

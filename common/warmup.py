@@ -120,7 +120,7 @@ def _exercise() -> None:
     from common.registration.photometric import align_flies, pyramid
     grey = img.left if img.left.ndim == 2 else img.left.mean(axis=2).astype(np.uint8)
     flies = np.array(ev.positions, np.float64)
-    align_flies(flies, np.ones(len(flies)), pyramid(grey, 2), pyramid(grey, 2), cal.K_left, min_flies=1)
+    align_flies(flies, np.ones(len(flies)), pyramid(grey, 2), pyramid(grey, 2), cal.K_rectified, min_flies=1)
     # Both fitness kernels (the evolver picks one by measured cost), on writable and read-only flies.
     for parallel in (True, False):
         image_fitness(ev.frame, cal, ev.positions, parallel=parallel)

@@ -259,3 +259,30 @@ def test_real_copy_bad_layout_is_one_line_naming_the_file(real_copy, tmp_path, c
     assert err.count("\n") == 0 and "Traceback" not in err
     assert str(named) in err and says in err
     assert not out.exists()
+
+
+def test_real_slice_tracks_alike_when_the_calibration_keeps_the_raw_cameras_intrinsics(real_slice):
+    """A calibration made by ``flyslam calibrate`` keeps the raw cameras' K (and distortion) beside the
+    rectified projection the images were rectified to. Tracking uses the rectified one: the same images
+    with a raw K that differs by a few pixels and per cent must give the same trajectory."""
+    from dataclasses import replace
+
+    from common.lockstep import run_lockstep
+    from common.messages import calibration_to_msg, encode
+    from common.recording import RecordedMessage
+    from common.trajectory_metrics import evaluate
+    out, rectified = real_slice
+    raw_K = np.array([[718.856 * 1.03, 0.0, 607.19 + 25.0], [0.0, 718.856 * 1.03, 185.22 - 12.0], [0.0, 0.0, 1.0]])
+
+    def with_raw_K():
+        for rec in RecordingReader(out).messages():
+            if rec.key.endswith("stereo/calibration"):
+                msg = decode(rec.payload)
+                calib = replace(calibration_from_msg(msg), K_left=raw_K, D_left=np.array([-0.3, 0.1, 0.0, 0.0, 0.0]))
+                payload = encode(calibration_to_msg(calib, msg.header.seq, msg.header.stamp_ns))
+                rec = RecordedMessage(rec.key, rec.schema, rec.log_time_ns, rec.publish_time_ns, payload)
+            yield rec
+
+    raw = run_lockstep(with_raw_K())
+    ate = [evaluate(r.stamps, r.estimated, r.truth_stamps, r.truth).ate_rmse_m for r in (rectified, raw)]
+    assert ate[1] == pytest.approx(ate[0], abs=0.02), ate

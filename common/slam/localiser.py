@@ -657,7 +657,7 @@ class FlyLocaliser:
             return 0.0
         T_cam_ref = invert(T_map_base @ self.T_base_camera) @ ref.T_map_cam
         P = transform_points(T_cam_ref, ref.points.astype(np.float64))
-        K, cal = self.calibration.K_left, self.calibration
+        K, cal = self.calibration.K_rectified, self.calibration
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2]
             v = K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]
@@ -679,7 +679,7 @@ class FlyLocaliser:
         c = self.config
         held = self._reference
         self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
-                                         c.photometric_levels, image_pyramid, K=self.calibration.K_left,
+                                         c.photometric_levels, image_pyramid, K=self.calibration.K_rectified,
                                          trusted_fraction=c.keep_fraction)
         fix, _ = self._photometric(new_pyramid, T_pred, T_pred, source)
         if fix is None and source != "odometry":
@@ -694,7 +694,7 @@ class FlyLocaliser:
         if self._reference is None:
             return None, "no reference view yet"
         c = self.config
-        fix, why = photometric_fix(self._reference, new_pyramid, self.calibration.K_left, T_start,
+        fix, why = photometric_fix(self._reference, new_pyramid, self.calibration.K_rectified, T_start,
                                    self.T_base_camera, c.photometric_min_inliers, search=search)
         if fix is None:
             return None, why
