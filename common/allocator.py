@@ -5,9 +5,7 @@ glibc's default malloc gives blocks that large back to the kernel when they are 
 trimming the heap top), so the next frame's arrays fault their pages in again, each one zeroed by the
 kernel: on a virtual machine that system time exceeded the arithmetic it fed. ``retain_freed_memory``
 keeps freed blocks in the process for reuse instead. Resident memory then stays at the process's
-high-water mark rather than following each frame's allocations down and up again. Since every
-arena keeps its own high-water mark, the arenas are capped at ``ARENAS``: otherwise each Zenoh callback
-thread that allocates gets an arena of its own, and a flood of messages raises all of them.
+high-water mark rather than following each frame's allocations down and up again.
 """
 from __future__ import annotations
 
@@ -16,15 +14,13 @@ import ctypes.util
 
 M_TRIM_THRESHOLD = -1     # glibc mallopt parameters (malloc.h)
 M_MMAP_THRESHOLD = -3
-M_ARENA_MAX = -8
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024    # blocks up to this size come from the heap (glibc's dynamic maximum)
 TRIM_THRESHOLD_BYTES = 1024 * 1024 * 1024  # free space kept at the heap's top before any is returned
-ARENAS = 2     # malloc arenas at most: Zenoh's callback threads share them instead of each keeping its own
 
 
 def retain_freed_memory() -> bool:
-    """Ask glibc to keep freed blocks up to 32 MB for reuse (no per-frame page faults) in at most
-    ``ARENAS`` arenas. True when set; False where the C library is not glibc (nothing changes there)."""
+    """Ask glibc to keep freed blocks up to 32 MB for reuse (no per-frame page faults). True when set;
+    False where the C library is not glibc (nothing changes there)."""
     name = ctypes.util.find_library("c")
     try:
         libc = ctypes.CDLL(name)
@@ -32,5 +28,4 @@ def retain_freed_memory() -> bool:
     except (OSError, AttributeError, TypeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return (bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
-            and bool(mallopt(M_ARENA_MAX, ARENAS)))
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
