@@ -1,7 +1,7 @@
-"""CPU cost of the localiser's photometric tracking (align_flies, coarse_search) on a real recording.
+"""CPU cost of the localiser's photometric tracking (align_flies, coarse_candidates) on a real recording.
 
 The recording is run through `flyslam eval`'s code path (common.lockstep.run_lockstep: evolver and
-localiser in lockstep) with the localiser's calls to align_flies and coarse_search recorded; those calls
+localiser in lockstep) with the localiser's calls to align_flies and coarse_candidates recorded; those calls
 are then replayed ``--passes`` times on the same inputs. Every figure is process CPU time
 (``time.process_time``, all threads), which a loaded machine inflates far less than the wall clock.
 
@@ -10,7 +10,7 @@ Figures:
   align_cpu_ms_in_run          mean CPU-ms per call inside the run (caches as the run had them)
   align_cpu_ms_per_call        replay: mean CPU-ms per call, the best pass (median_pass: the median pass)
   align_iterations_per_call    mean Gauss-Newton iterations per call (all pyramid levels)
-  coarse_calls / coarse_cpu_ms_per_call   the same for coarse_search (replayed; 0 calls → null)
+  coarse_calls / coarse_cpu_ms_per_call   the same for coarse_candidates (replayed; 0 calls → null)
   load_average_1min            before the run and after the replay
 
 The last stdout line with --json is one JSON object.
@@ -36,7 +36,7 @@ def record_calls(recording: Path, max_frames: int | None, generations: int):
     from common.slam import tracking
 
     calls = []
-    originals = {"align": tracking.align_flies, "coarse": tracking.coarse_search}
+    originals = {"align": tracking.align_flies, "coarse": tracking.coarse_candidates}
 
     def recorder(kind):
         def call(*args, **kwargs):
@@ -46,19 +46,19 @@ def record_calls(recording: Path, max_frames: int | None, generations: int):
             return out
         return call
 
-    tracking.align_flies, tracking.coarse_search = recorder("align"), recorder("coarse")
+    tracking.align_flies, tracking.coarse_candidates = recorder("align"), recorder("coarse")
     try:
         result = run_lockstep(RecordingReader(str(recording)).messages(), generations_per_frame=generations,
                               max_frames=max_frames)
     finally:
-        tracking.align_flies, tracking.coarse_search = originals["align"], originals["coarse"]
+        tracking.align_flies, tracking.coarse_candidates = originals["align"], originals["coarse"]
     return calls, result.frames
 
 
 def replay(calls, passes: int):
     """CPU-s per call of each pass over ``calls`` (warm: every kernel already ran in the recording)."""
-    from common.registration.photometric import align_flies, coarse_search
-    fn = {"align": align_flies, "coarse": coarse_search}
+    from common.registration.photometric import align_flies, coarse_candidates
+    fn = {"align": align_flies, "coarse": coarse_candidates}
     per_pass, out = [], None
     for _ in range(passes):
         t = time.process_time()

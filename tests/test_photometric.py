@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.geometry import invert, make_transform, rot_y, so3_log
-from common.registration.photometric import AlignmentError, align_flies, coarse_search, pyramid
+from common.registration.photometric import AlignmentError, align_flies, coarse_candidates, coarse_search, pyramid
 
 W, H, F = 480, 200, 300.0
 K = np.array([[F, 0, W / 2 - 0.5], [0, F, H / 2 - 0.5], [0, 0, 1.0]])
@@ -70,6 +70,21 @@ def test_an_unknown_large_motion_is_found_by_the_lattice_first():
     t_err, r_err = errors(res.T, invert(T_ref_new))
     print(f"\nfrom the lattice: {100 * t_err:.2f} cm, {r_err:.3f}°")
     assert res.ok and t_err < 0.02 and r_err < 0.1
+
+
+def test_the_lattice_offers_distinct_starts_and_the_true_motion_fits_best():
+    """When the motion is unknown the tracker aligns from several lattice minima (distinct basins,
+    best-scored first) and keeps the best fit: the true 0.9 m step is among them and fits best."""
+    T_ref_new = make_transform(np.eye(3), [0.9, 0.0, 0.0])
+    ref, new = pyramid(render(np.eye(4)), 4), pyramid(render(T_ref_new), 4)
+    P = flies_on_the_plane()
+    w = np.ones(len(P))
+    starts = coarse_candidates(P, w, ref, new, K, np.eye(4), count=3)
+    assert len(starts) == 3 and np.allclose(starts[0], coarse_search(P, w, ref, new, K, np.eye(4)))
+    assert min(np.linalg.norm(a[:3, 3] - b[:3, 3]) for i, a in enumerate(starts) for b in starts[i + 1:]) > 0.05
+    fits = [align_flies(P, w, ref, new, K, T) for T in starts]
+    best = min((f for f in fits if f.ok), key=lambda f: f.residual)
+    assert errors(best.T, invert(T_ref_new))[0] < 0.02
 
 
 def test_malformed_flies_are_refused_with_a_reason():

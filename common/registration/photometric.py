@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numba import njit
+from scipy.ndimage import minimum_filter
 
 from common.geometry import orthonormalised, so3_exp
 
@@ -428,9 +429,20 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
 def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[np.ndarray],
                   new_pyramid: list[np.ndarray], K: np.ndarray, T_center: np.ndarray | None = None,
                   max_candidates_per_axis: int = 11, max_flies: int = 200) -> np.ndarray:
-    """The best start for :func:`align_flies` when the motion is unknown: a lattice of camera motions
-    (lateral x, forward z, yaw about the optical y axis) around ``T_center``, scored at the coarsest
-    pyramid level by the robust mean residual of the flies' zero-mean neighbourhoods.
+    """The best start for :func:`align_flies` when the motion is unknown (the first of
+    :func:`coarse_candidates`)."""
+    return coarse_candidates(points_ref, weights, ref_pyramid, new_pyramid, K, T_center, 1,
+                             max_candidates_per_axis, max_flies)[0]
+
+
+def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[np.ndarray],
+                      new_pyramid: list[np.ndarray], K: np.ndarray, T_center: np.ndarray | None = None,
+                      count: int = 3, max_candidates_per_axis: int = 11, max_flies: int = 200) -> list[np.ndarray]:
+    """Starts for :func:`align_flies` when the motion is unknown, best first: a lattice of camera
+    motions (lateral x, forward z, yaw about the optical y axis) around ``T_center``, scored at the
+    coarsest pyramid level by the robust mean residual of the flies' zero-mean neighbourhoods; the
+    ``count`` deepest local minima of that score (distinct basins: on a deep scene a sideways step
+    with a turn can score nearly as well as the forward motion, and only the full alignment tells).
 
     The lattice spans what keeps the views overlapping — ±0.1 × the flies' median depth sideways,
     ±0.25 × it forwards, ±5° of yaw — with steps that move a fly ~1.5 coarse pixels."""
@@ -440,7 +452,7 @@ def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list
     P, w = P[ok], w[ok]
     T0 = np.eye(4) if T_center is None else np.asarray(T_center, float)
     if len(P) < 10:
-        return T0
+        return [T0]
     if len(P) > max_flies:
         pick = np.random.default_rng(0).choice(len(P), max_flies, replace=False)
         P, w = P[pick], w[pick]
@@ -482,8 +494,12 @@ def coarse_search(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list
     valid = front & np.isfinite(r).all(2) & np.isfinite(ref).all(1)[None]
     per_fly = np.where(valid, np.minimum(np.nan_to_num(r.mean(2), nan=0.0), 20.0), 20.0)   # truncated
     score = (per_fly * w[None]).sum(1) / w.sum()
-    best = int(np.argmin(score))
-    D = np.eye(4)
-    D[:3, :3] = np.array([[c[best], 0, sn[best]], [0, 1, 0], [-sn[best], 0, c[best]]])
-    D[:3, 3] = (X[best], 0.0, Z[best])
-    return D @ T0
+    grid = score.reshape(len(xs), len(zs), -1)
+    minima = np.flatnonzero(grid.ravel() <= minimum_filter(grid, size=3, mode="nearest").ravel())
+    starts = []
+    for best in minima[np.argsort(score[minima], kind="stable")][:max(1, count)]:
+        D = np.eye(4)
+        D[:3, :3] = np.array([[c[best], 0, sn[best]], [0, 1, 0], [-sn[best], 0, c[best]]])
+        D[:3, 3] = (X[best], 0.0, Z[best])
+        starts.append(D @ T0)
+    return starts
