@@ -187,3 +187,18 @@ def test_a_reference_changed_between_calls_is_not_aligned_with_stale_terms():
     align_flies(P, w, ref_a, new, K)
     w[: len(w) // 2] = 0.0
     assert np.array_equal(align_flies(P, w, ref_a, new, K).T, fresh(P, w, ref_a, new, K))
+
+
+def test_the_motion_found_the_other_way_round_matches_the_true_one():
+    """The map's first fix may also take its start from the new image's flies aligned back into the
+    reference image (common.slam.tracking.reverse_motion): that gives the same 0.9 m step."""
+    from common.slam.tracking import ReferenceView, reverse_motion
+    T_ref_new = make_transform(np.eye(3), [0.9, 0.0, 0.0])
+    ref_image, new_image = render(np.eye(4)), render(T_ref_new)
+    P_ref = flies_on_the_plane()
+    P_new = (P_ref - T_ref_new[:3, 3]) @ T_ref_new[:3, :3]          # the same surface, new camera frame
+    view = ReferenceView(np.eye(4), P_ref.astype(np.float32), np.ones(len(P_ref), np.float32), ref_image)
+    T_new_ref = reverse_motion(view, P_new, np.ones(len(P_new)), pyramid(new_image, 4), K, 0.5)
+    assert T_new_ref is not None
+    t_err, r_err = errors(T_new_ref, invert(T_ref_new))
+    assert t_err < 0.02 and r_err < 0.1

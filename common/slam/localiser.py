@@ -39,7 +39,8 @@ from common.registration.weights import visible_mask
 from common.slam.backend import KeyframeGraph, LoopClosure, odometry_sigmas
 from common.slam.config import LocaliserConfig
 from common.slam.posegraph import PoseGraphError, planar_covariance
-from common.slam.tracking import ReferenceView, photometric_fix, reference_view
+from common.slam.tracking import (SWITCH_RESIDUAL_RATIO, ReferenceView, photometric_fix, reference_view,
+                                  reverse_motion)
 
 
 POOR_FIT_RATIO = 1.5   # a fix whose residual scale exceeds the recent median by this much is tried from other starts
@@ -548,6 +549,8 @@ class FlyLocaliser:
                                     or self._reference_share_in_view(T_pred) < c.photometric_min_inliers)
             if fix is None and lost:
                 fix = self._photometric_from_newest_view(new_pyramid, T_pred, source)
+            if source == "none" and view_flies is not None:
+                fix = self._from_both_sides(new_pyramid, view_flies, T_pred, fix)
             if source == "constant velocity" and (fix is None or self._poorly_fitted(fix)):
                 fix, why = self._best_of_starts(new_pyramid, T_pred, source, fix)
                 photometric_reason = why or photometric_reason
@@ -649,6 +652,29 @@ class FlyLocaliser:
         if not candidates:
             return None, why_search or why
         return min(candidates, key=lambda f: f.residual), ""
+
+    def _from_both_sides(self, new_pyramid, view_flies, T_pred: np.ndarray, fix):
+        """The motion unknown (the map's first fix), ``fix`` or a fix aligned from the motion found the
+        other way round — this population's flies aligned back into the reference image —, whichever
+        fits clearly better.  Live, the population the map starts from may have had only ~30
+        generations on its own frame while the camera moved a metre a frame; the newer one has more,
+        and from the lattice the reference's weaker flies sometimes took a sideways step with a turn
+        for the forward motion."""
+        ref, c = self._reference, self.config
+        if ref is None:
+            return fix
+        positions, fit, image, image_pyramid = view_flies
+        back = reference_view(np.eye(4), positions, fit, image, c.photometric_flies, 0.3, c.photometric_levels,
+                              image_pyramid)
+        T_new_ref = reverse_motion(ref, back.points, back.weights, new_pyramid, self.calibration.K_rectified,
+                                   c.photometric_min_inliers)
+        if T_new_ref is None:
+            return fix
+        T_start = ref.T_map_cam @ invert(T_new_ref) @ invert(self.T_base_camera)
+        alt, _ = self._photometric(new_pyramid, T_start, T_pred, "none")
+        if alt is not None and (fix is None or alt.residual < SWITCH_RESIDUAL_RATIO * fix.residual):
+            return alt
+        return fix
 
     def _reference_share_in_view(self, T_map_base: np.ndarray) -> float:
         """Share of the tracking reference's flies inside the left image of a camera at ``T_map_base``."""

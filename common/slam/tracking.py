@@ -84,6 +84,27 @@ class Fix:
     residual: float
 
 
+def best_alignment(points, weights, ref_pyramid, new_pyramid, K, starts, min_inliers: float):
+    """align_flies from each of ``starts`` in turn: a later start replaces the current choice only when
+    it is accepted (ok, ``min_inliers``) and fits clearly better (SWITCH_RESIDUAL_RATIO)."""
+    al = None
+    for T in starts:
+        alt = align_flies(points, weights, ref_pyramid, new_pyramid, K, T)
+        if al is None or (alt.ok and alt.inliers >= min_inliers
+                          and (not al.ok or alt.residual < SWITCH_RESIDUAL_RATIO * al.residual)):
+            al = alt
+    return al
+
+
+def reverse_motion(view: ReferenceView, points, weights, new_pyramid: list[np.ndarray], K: np.ndarray,
+                   min_inliers: float) -> np.ndarray | None:
+    """T_new_ref found the other way round, when the motion is unknown: the new image's flies (its left
+    optical frame) aligned back into ``view``'s image from the lattice's starts; None when that fails."""
+    starts = coarse_candidates(points, weights, new_pyramid, view.pyramid(), K, np.eye(4), SEARCH_STARTS)
+    al = best_alignment(points, weights, new_pyramid, view.pyramid(), K, starts, min_inliers)
+    return invert(al.T) if al.ok and al.inliers >= min_inliers else None
+
+
 def photometric_fix(view: ReferenceView, new_pyramid: list[np.ndarray], K: np.ndarray, T_map_base_pred: np.ndarray,
                     T_base_camera: np.ndarray, min_inliers: float, search: bool = False) -> tuple[Fix | None, str]:
     """Align ``view``'s flies into the new image from the predicted pose (with ``search``, when the
@@ -93,12 +114,7 @@ def photometric_fix(view: ReferenceView, new_pyramid: list[np.ndarray], K: np.nd
     T_init = invert(T_map_cam_pred) @ view.T_map_cam                 # T_new_ref
     starts = coarse_candidates(view.points, view.weights, view.pyramid(), new_pyramid, K, T_init,
                                SEARCH_STARTS) if search else [T_init]
-    al = None
-    for T in starts:
-        alt = align_flies(view.points, view.weights, view.pyramid(), new_pyramid, K, T)
-        if al is None or (alt.ok and alt.inliers >= min_inliers
-                          and (not al.ok or alt.residual < SWITCH_RESIDUAL_RATIO * al.residual)):
-            al = alt
+    al = best_alignment(view.points, view.weights, view.pyramid(), new_pyramid, K, starts, min_inliers)
     if not al.ok:
         return None, al.reason
     if al.inliers < min_inliers:
