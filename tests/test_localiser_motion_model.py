@@ -33,4 +33,28 @@ def test_the_limit_grows_while_nothing_confirms_the_prediction():
     turned = T_pred @ planar_pose(0.0, 0.0, np.deg2rad(10.0))
     assert loc._implausible(T_pred, turned, source)
     loc._updates_since_fix = 2
+    loc._steps_since_fix = loc._prediction_steps(200_000_000)
     assert loc._implausible(T_pred, turned, source) == ""
+
+
+def test_the_limit_grows_with_the_time_since_the_last_fix_when_populations_were_skipped():
+    """Live, a localiser busy with one population misses the next ones: 0.6 s after the last fix the
+    prediction has run six steps on a velocity nothing has confirmed since."""
+    loc = _visual_localiser_moving()
+    T_pred, source = loc._predict(700_000_000, None)
+    off = T_pred @ planar_pose(-2.0, 0.3, 0.0)          # 2 m behind the prediction: the speed was off
+    loc._steps_since_fix = loc._prediction_steps(200_000_000)
+    assert loc._implausible(T_pred, off, source)
+    loc._steps_since_fix = loc._prediction_steps(700_000_000)
+    assert loc._implausible(T_pred, off, source) == ""
+
+
+def test_a_fix_after_unconfirmed_updates_teaches_the_motion_since_the_last_fix():
+    """The updates that nothing confirmed carried the prediction on; the next fix's motion is measured
+    from the last fix over the whole time, not as one step from the last placeholder."""
+    loc = _visual_localiser_moving()
+    loc._track_update(200_000_000, planar_pose(2.0, 0.0, 0.0), registered=False)    # placeholders
+    loc._track_update(300_000_000, planar_pose(3.0, 0.0, 0.0), registered=False)
+    loc._track_update(400_000_000, planar_pose(2.4, 0.0, 0.0))                      # the fix: slower
+    T_next, _ = loc._predict(500_000_000, None)
+    assert np.isclose(T_next[0, 3], 2.4 + 0.1 * (2.4 - 1.0) / 0.3)                 # 0.47 m a step, not -0.6

@@ -82,6 +82,7 @@ class _Tracking:
     last_stamp: int | None = None
     last_motion: np.ndarray | None = None      # body-frame motion over the last update
     last_dt: float = 0.0
+    last_fix: tuple | None = None              # (stamp, T_map_base) of the last registered update
 
 
 def voxel_thin(points: np.ndarray, fitness: np.ndarray, voxel: float):
@@ -113,6 +114,7 @@ class FlyLocaliser:
         self._fast_turn_since_fix = 0.0  # signed odometry yaw (rad) turned faster than max_turn_rate_radps
         self._last_fix_stamp: int | None = None
         self._updates_since_fix = 0      # the constant-velocity prediction's uncertainty grows with it
+        self._steps_since_fix = 1.0      # ... and with the time since the last fix (see _prediction_steps)
         self.graph_failures = 0          # pose-graph solves that failed (the front end carried on)
         self.slips_undone = 0            # fixes that took the prediction without a too-fast odometry turn
         self._pinned_hint = np.zeros(3, bool)      # see LocaliserConfig.tracking_recheck_pinned
@@ -447,12 +449,29 @@ class FlyLocaliser:
         dt = (stamp_ns - tr.last_stamp) * 1e-9
         return tr.last_T_map_base @ scaled_motion(tr.last_motion, dt / tr.last_dt), "constant velocity"
 
-    def _track_update(self, stamp_ns: int, T_map_base: np.ndarray) -> None:
+    def _prediction_steps(self, stamp_ns: int) -> float:
+        """How far the constant-velocity prediction reaches past the last fix, in model steps: the
+        updates since it, or the time since it over the last step's when populations were skipped
+        (a live localiser busy with one population misses the next ones)."""
+        steps, tr = 1.0 + self._updates_since_fix, self._track
+        if tr.last_fix is not None and tr.last_dt > 0:
+            steps = max(steps, (stamp_ns - tr.last_fix[0]) * 1e-9 / tr.last_dt)
+        return steps
+
+    def _track_update(self, stamp_ns: int, T_map_base: np.ndarray, registered: bool = True) -> None:
+        """Teach the constant-velocity model this pose.  A fix after unregistered updates (which only
+        carried the prediction on) measures the motion since the last fix, over all that time: from
+        the last placeholder it would be that whole correction in one step."""
         tr = self._track
         if tr.last_T_map_base is not None and stamp_ns > tr.last_stamp:
-            tr.last_dt = (stamp_ns - tr.last_stamp) * 1e-9
-            tr.last_motion = orthonormalised(invert(tr.last_T_map_base) @ T_map_base)
+            t0, T0 = tr.last_stamp, tr.last_T_map_base
+            if registered and tr.last_fix is not None and tr.last_fix[0] < tr.last_stamp:
+                t0, T0 = tr.last_fix
+            tr.last_dt = (stamp_ns - t0) * 1e-9
+            tr.last_motion = orthonormalised(invert(T0) @ T_map_base)
         tr.last_T_map_base, tr.last_stamp = orthonormalised(T_map_base), stamp_ns
+        if registered:
+            tr.last_fix = (stamp_ns, tr.last_T_map_base)
 
     # ---------------------------------------------------------------------------------- update
     def update(self, stamp_ns: int, positions_cam: np.ndarray, fitness: np.ndarray,
@@ -474,6 +493,7 @@ class FlyLocaliser:
             T_odom_base = None
         points, fit = self.select_flies(positions_cam, fitness)
         T_pred, source = self._predict(stamp_ns, T_odom_base)
+        self._steps_since_fix = self._prediction_steps(stamp_ns)
         cov_pred = np.diag([0.05, 0.05, 1e-6, 1e-6, 1e-6, 0.02]) ** 2
         new_pyramid = view_flies = None
         if image is not None and c.photometric and self.calibration is not None:
@@ -509,7 +529,7 @@ class FlyLocaliser:
                 if view_flies is not None and (registered or self._reference is None):
                     self._renew_reference(T_map_base, view_flies)
                     self._newest_view = (T_map_base @ self.T_base_camera, view_flies)
-                self._track_update(stamp_ns, T_map_base)
+                self._track_update(stamp_ns, T_map_base, registered)
                 self._updates_since_fix = 0 if registered else self._updates_since_fix + 1
                 anchor = self.keyframes[-1]       # the trajectory starts with the map
                 self._history.append((stamp_ns, anchor, invert(anchor.T_map_base) @ T_map_base))
@@ -746,8 +766,9 @@ class FlyLocaliser:
     def _implausible(self, T_pred: np.ndarray, T_fix: np.ndarray, source: str) -> str:
         """Why a fix is too far from the prediction to believe ('' when it is not).  With odometry: 4 σ
         of the prior.  With constant velocity: a change of speed up to half the last step and 5° of
-        turn per update, growing with the updates since the last fix (the prediction's uncertainty
-        grows while nothing confirms it; a fixed limit would never let go of a turn that has ended)."""
+        turn per update, growing with the updates since the last fix, or with the time since it in
+        model steps when populations were skipped (the prediction's uncertainty grows while nothing
+        confirms it; a fixed limit would never let go of a turn that has ended)."""
         jump = invert(T_pred) @ T_fix
         moved = np.linalg.norm(jump[:3, 3])
         turned = np.degrees(np.linalg.norm(so3_log(jump[:3, :3])))
@@ -758,7 +779,7 @@ class FlyLocaliser:
             limit_m, limit_deg = np.inf, 10.0
         else:
             step = np.linalg.norm(self._track.last_motion[:3, 3]) if self._track.last_motion is not None else 1.0
-            grown = 1 + self._updates_since_fix
+            grown = self._steps_since_fix
             limit_m, limit_deg = (0.3 + 0.5 * step) * grown, 5.0 * grown
         if moved > limit_m or turned > limit_deg:
             return f"{moved:.2f} m / {turned:.1f}° from the prediction (limit {limit_m:.2f} m / {limit_deg:.1f}°)"
