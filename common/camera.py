@@ -80,8 +80,8 @@ class StereoCalibration:
     @property
     def K_rectified(self) -> np.ndarray:
         """3×3 intrinsics of the rectified left image, the one every algorithm sees (``K_left`` is the
-        raw camera's, before rectification: the same only for an already-rectified source)."""
-        return np.array([[self.fx, 0.0, self.cx_left], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        raw camera's before rectification, or whatever the source gave: not for the images)."""
+        return self.P_left[:, :3].copy()
 
     @property
     def P_left(self) -> np.ndarray:

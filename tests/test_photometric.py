@@ -202,3 +202,20 @@ def test_the_motion_found_the_other_way_round_matches_the_true_one():
     assert T_new_ref is not None
     t_err, r_err = errors(T_new_ref, invert(T_ref_new))
     assert t_err < 0.02 and r_err < 0.1
+
+
+@pytest.mark.parametrize("results, chosen", [
+    ([(True, 0.7, 6.0), (True, 0.7, 1.8)], 1),   # a clearly better fit from a later start wins
+    ([(True, 0.7, 2.0), (True, 0.7, 1.9)], 0),   # near-equal fits: the preferred (first) start stays
+    ([(True, 0.4, 3.0), (True, 0.8, 2.9)], 1),   # the first is below min_inliers: an accepted one replaces it
+    ([(False, 0.0, np.nan), (True, 0.7, 5.0)], 1),
+    ([(True, 0.7, 2.0), (False, 0.0, 0.5)], 0),  # a failed alignment never replaces an accepted one
+])
+def test_best_alignment_prefers_the_first_start_unless_another_clearly_fits_better(monkeypatch, results, chosen):
+    from common.registration.photometric import Alignment
+    from common.slam import tracking
+    fits = iter([Alignment(np.eye(4) * (i + 1), np.eye(6), r, inl, 100, 5, ok, "")
+                 for i, (ok, inl, r) in enumerate(results)])
+    monkeypatch.setattr(tracking, "align_flies", lambda *a, **k: next(fits))
+    best = tracking.best_alignment(None, None, None, None, K, [np.eye(4)] * len(results), min_inliers=0.5)
+    assert best.T[0, 0] == chosen + 1

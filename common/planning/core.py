@@ -90,7 +90,7 @@ def velocity_command(c: Command, look_omega: float) -> m.VelocityCommand:
 def camera_view(T_map_cam: np.ndarray, calib, near_m: float, range_m: float) -> SensorView:
     """The ground wedge the left camera saw (map frame): its position, the heading of its optical axis
     (z), half its horizontal field of view, and the trusted depth band."""
-    fx, cx = float(calib.left.K[0, 0]), float(calib.left.K[0, 2])
+    fx, cx = float(calib.left.P[0, 0]), float(calib.left.P[0, 2])     # the rectified image (K: the raw camera's)
     half_fov = math.atan2(max(cx, calib.width - cx), fx)
     return SensorView(x=float(T_map_cam[0, 3]), y=float(T_map_cam[1, 3]),
                       yaw=math.atan2(float(T_map_cam[1, 2]), float(T_map_cam[0, 2])),

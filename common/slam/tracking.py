@@ -85,13 +85,16 @@ class Fix:
 
 
 def best_alignment(points, weights, ref_pyramid, new_pyramid, K, starts, min_inliers: float):
-    """align_flies from each of ``starts`` in turn: a later start replaces the current choice only when
-    it is accepted (ok, ``min_inliers``) and fits clearly better (SWITCH_RESIDUAL_RATIO)."""
+    """align_flies from each of ``starts`` in turn, in order of preference: a later start replaces the
+    current choice when it is accepted (ok, ``min_inliers``) and the choice is not, or when it fits
+    clearly better (residual under SWITCH_RESIDUAL_RATIO × the choice's)."""
+    def accepted(a) -> bool:
+        return a.ok and a.inliers >= min_inliers and np.isfinite(a.residual)
+
     al = None
     for T in starts:
         alt = align_flies(points, weights, ref_pyramid, new_pyramid, K, T)
-        if al is None or (alt.ok and alt.inliers >= min_inliers
-                          and (not al.ok or alt.residual < SWITCH_RESIDUAL_RATIO * al.residual)):
+        if al is None or (accepted(alt) and (not accepted(al) or alt.residual < SWITCH_RESIDUAL_RATIO * al.residual)):
             al = alt
     return al
 
