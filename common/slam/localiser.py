@@ -702,12 +702,10 @@ class FlyLocaliser:
         if ref is None or len(ref.points) == 0:
             return 0.0
         T_cam_ref = invert(T_map_base @ self.T_base_camera) @ ref.T_map_cam
-        P = transform_points(T_cam_ref, ref.points.astype(np.float64))
-        K, cal = self.calibration.K_rectified, self.calibration
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2]
-            v = K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]
-        inside = (P[:, 2] > 0) & (u >= 0) & (u < cal.width) & (v >= 0) & (v < cal.height)
+        cal = self.calibration
+        u, _, v = cal.project(transform_points(T_cam_ref, ref.points.astype(np.float64)))   # NaN behind
+        with np.errstate(invalid="ignore"):
+            inside = (u >= 0) & (u < cal.width) & (v >= 0) & (v < cal.height)
         return float(np.mean(inside))
 
     def _photometric_from_newest_view(self, new_pyramid, T_pred: np.ndarray, source: str):

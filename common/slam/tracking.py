@@ -84,17 +84,19 @@ class Fix:
     residual: float
 
 
+def _accepted(al, min_inliers: float) -> bool:
+    return al.ok and al.inliers >= min_inliers and np.isfinite(al.residual)
+
+
 def best_alignment(points, weights, ref_pyramid, new_pyramid, K, starts, min_inliers: float):
     """align_flies from each of ``starts`` in turn, in order of preference: a later start replaces the
     current choice when it is accepted (ok, ``min_inliers``) and the choice is not, or when it fits
     clearly better (residual under SWITCH_RESIDUAL_RATIO × the choice's)."""
-    def accepted(a) -> bool:
-        return a.ok and a.inliers >= min_inliers and np.isfinite(a.residual)
-
     al = None
     for T in starts:
         alt = align_flies(points, weights, ref_pyramid, new_pyramid, K, T)
-        if al is None or (accepted(alt) and (not accepted(al) or alt.residual < SWITCH_RESIDUAL_RATIO * al.residual)):
+        if al is None or (_accepted(alt, min_inliers)
+                          and (not _accepted(al, min_inliers) or alt.residual < SWITCH_RESIDUAL_RATIO * al.residual)):
             al = alt
     return al
 
@@ -105,14 +107,14 @@ def reverse_motion(view: ReferenceView, points, weights, new_pyramid: list[np.nd
     optical frame) aligned back into ``view``'s image from the lattice's starts; None when that fails."""
     starts = coarse_candidates(points, weights, new_pyramid, view.pyramid(), K, np.eye(4), SEARCH_STARTS)
     al = best_alignment(points, weights, new_pyramid, view.pyramid(), K, starts, min_inliers)
-    return invert(al.T) if al.ok and al.inliers >= min_inliers else None
+    return invert(al.T) if _accepted(al, min_inliers) else None
 
 
 def photometric_fix(view: ReferenceView, new_pyramid: list[np.ndarray], K: np.ndarray, T_map_base_pred: np.ndarray,
                     T_base_camera: np.ndarray, min_inliers: float, search: bool = False) -> tuple[Fix | None, str]:
     """Align ``view``'s flies into the new image from the predicted pose (with ``search``, when the
-    motion is unknown: from the lattice search's best starts around it, the best-fitting alignment
-    wins); (fix, '') or (None, why)."""
+    motion is unknown: from the lattice search's starts around it, chosen by :func:`best_alignment`);
+    (fix, '') or (None, why)."""
     T_map_cam_pred = T_map_base_pred @ T_base_camera
     T_init = invert(T_map_cam_pred) @ view.T_map_cam                 # T_new_ref
     starts = coarse_candidates(view.points, view.weights, view.pyramid(), new_pyramid, K, T_init,
