@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import socket
 import subprocess
 import sys
@@ -27,7 +28,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-import rerun as rr
+
+# Rerun's native allocator (mimalloc) by default keeps freed pages for 10 ms before returning them; with
+# images and thousands of small log calls a second, the bridge's RSS crept up ~0.4 MB/s. Returning them
+# at once (read when rerun's library loads, so before the import) about halves that creep.
+os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
+import rerun as rr  # noqa: E402
 
 from common import streams as S
 from common.recording import claim_segment
@@ -39,9 +45,11 @@ log = logging.getLogger("flyslam.bridge")
 # Streams delivered by callback: every message matters (trajectories, commands, health).
 CALLBACK_STREAMS = [S.SLAM_POSE, S.FUSION_POSE, S.FUSION_ODOM, S.TRUTH_POSE, S.PLANNER_CMD_VEL, S.PLANNER_TARGET,
                     S.STATUS]
+POSE_STREAMS = {s.key for s in (S.SLAM_POSE, S.FUSION_POSE, S.FUSION_ODOM, S.TRUTH_POSE)}
 # Streams where only the newest message is worth logging.
 LATEST_STREAMS = [S.STEREO_FRAME, S.FLIES_POPULATION, S.PLANNER_FIELD, S.FUSION_SONAR_POINTS]
-INBOX_MAX_BYTES = 32 * 1024 * 1024
+INBOX_MAX_BYTES = 8 * 1024 * 1024      # ~5,000 small messages: half a minute of a stalled main loop
+MESSAGE_OVERHEAD_BYTES = 1536          # a decoded PoseEstimate holds ~1.5 kB beyond its arrays' data
 
 
 def build_parser():
@@ -52,8 +60,9 @@ def build_parser():
     p.add_argument("--web-port", type=int, default=9090, help="web viewer over HTTP (0: none; needs --grpc-port)")
     p.add_argument("--bind", default="127.0.0.1",
                    help="address the live servers listen on; 0.0.0.0 exposes them to the network")
-    p.add_argument("--server-memory-limit", default="512MiB",
-                   help="how much the live server buffers for viewers that connect late")
+    p.add_argument("--server-memory-limit", default="48MiB",
+                   help="how much the live server keeps for viewers that connect late (the newest data: about half a "
+                        "minute of the demo); a connected viewer gets everything and the .rrd holds the whole run")
     p.add_argument("--image-hz", type=float, default=10.0, help="log images, flies and the field at most this often")
     p.add_argument("--pose-hz", type=float, default=30.0,
                    help="log each pose stream at most this often (sensor time): a flood of poses costs no memory")
@@ -139,7 +148,7 @@ class Inbox:
     def _cost(msg) -> int:
         """Rough resident size of a message: its numpy arrays plus a fixed overhead."""
         fields = vars(msg).values() if hasattr(msg, "__dict__") else ()
-        return 512 + sum(a.nbytes for a in fields if isinstance(a, np.ndarray))
+        return MESSAGE_OVERHEAD_BYTES + sum(a.nbytes for a in fields if isinstance(a, np.ndarray))
 
     def put(self, stream: str, msg) -> None:
         cost = self._cost(msg)
@@ -167,11 +176,36 @@ class Inbox:
             yield stream, msg
 
 
-def subscribe_all(node, inbox: Inbox, map_period_s: float):
-    """Callback streams and liveliness into the inbox; (latest-value subscriptions, latched inputs)."""
+class PoseThinning:
+    """Lets through, per pose stream, one pose per ``period_s`` of sensor time and every status change:
+    the poses :meth:`common.viz.RerunLogger.pose` would log, decided on arrival (Zenoh threads), so that
+    a flood of poses never queues in the inbox faster than the main loop logs it."""
+
+    def __init__(self, period_s: float):
+        self.period_ns = int(period_s * 1e9)
+        self._last: dict[str, tuple[int, str]] = {}
+        self._lock = threading.Lock()
+
+    def keep(self, stream: str, msg) -> bool:
+        stamp, status = msg.header.stamp_ns, msg.status
+        with self._lock:
+            last = self._last.get(stream)
+            if last is not None and last[1] == status and 0 <= stamp - last[0] < self.period_ns:
+                return False
+            self._last[stream] = (stamp, status)
+            return True
+
+
+def subscribe_all(node, inbox: Inbox, map_period_s: float, pose_period_s: float):
+    """Callback streams and liveliness into the inbox (pose streams thinned to what the logger logs);
+    (latest-value subscriptions, latched inputs)."""
+    thinning = PoseThinning(pose_period_s)
     for stream in CALLBACK_STREAMS:
         name = "status" if stream is S.STATUS else stream.key
-        node.subscribe(stream, callback=lambda msg, name=name: inbox.put(name, msg))
+        if name in POSE_STREAMS:
+            node.subscribe(stream, callback=lambda msg, name=name: thinning.keep(name, msg) and inbox.put(name, msg))
+        else:
+            node.subscribe(stream, callback=lambda msg, name=name: inbox.put(name, msg))
     node.watch_liveliness(S.HEALTH_PREFIX, lambda service, alive: inbox.put("health", (service, alive)))
     latest = {stream.key: node.subscribe_latest(stream) for stream in LATEST_STREAMS}
     # The target comes by callback too; asked for as well, since a target published once before the
@@ -222,12 +256,13 @@ def body(node, args) -> int:
     web = start_web_viewer(args, grpc_uri) if grpc_uri else None
     log.info("live: rerun %s; recording to %s", grpc_uri, args.rrd)
     inbox = Inbox(node)
-    latest, latched = subscribe_all(node, inbox, args.map_period_s)
+    latest, latched = subscribe_all(node, inbox, args.map_period_s, 1.0 / args.pose_hz)
     try:
         while True:
             t0 = time.monotonic()
             last_round = node.stopping  # one more round after the stop request drains what arrived
             node.rates["inbox_backlog"] = float(inbox.size())
+            node.rates["inbox_mb"] = round(inbox.bytes() / 2**20, 2)
             batch = list(inbox.drain())
             batch += [(stream, msg) for stream, sub in latched.items() if (msg := sub.take()) is not None]
             batch += [(stream, msg) for stream, sub in latest.items() if (msg := sub.take()) is not None]

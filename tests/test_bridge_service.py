@@ -105,3 +105,26 @@ def test_a_busy_live_port_still_gives_a_complete_file(zenoh_port, tmp_path):
     assert "busy" in (tmp_path / "bridge.log").read_text()
     _verify(rrd)
     assert f"/{P.FLIES}" in rrd_rows(rrd)
+
+
+def test_a_pose_flood_is_thinned_on_arrival_but_every_status_change_gets_through():
+    """1,000 fused poses in one second of sensor time reach the bridge's inbox as ~30 (what the viewer
+    logs), so a stalled main loop cannot fill memory with them; a status flip is never thinned away."""
+    from common import messages as m
+    from services.bridge import Inbox, PoseThinning
+
+    class _Node:
+        counters = {}
+
+    inbox, thinning = Inbox(_Node()), PoseThinning(1 / 30)
+    for i in range(1000):
+        T = np.eye(4)
+        T[0, 3] = i * 1e-3
+        msg = m.pose_msg(T, seq=i + 1, stamp_ns=10**9 + i * 10**6)
+        msg.status = "odometry only" if i == 500 else "ok"
+        if thinning.keep("fusion/pose", msg):
+            inbox.put("fusion/pose", msg)
+    kept = [msg for _, msg in inbox.drain()]
+    assert 28 <= len(kept) <= 34
+    assert [msg.status for msg in kept].count("odometry only") == 1
+    assert kept[-1].header.stamp_ns > 10**9 + 960 * 10**6   # the newest second's tail is still there
