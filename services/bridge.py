@@ -61,8 +61,7 @@ def build_parser():
     p.add_argument("--bind", default="127.0.0.1",
                    help="address the live servers listen on; 0.0.0.0 exposes them to the network")
     p.add_argument("--server-memory-limit", default="48MiB",
-                   help="how much the live server keeps for viewers that connect late (the newest data: about half a "
-                        "minute of the demo); a connected viewer gets everything and the .rrd holds the whole run")
+                   help="newest data the live server keeps for late viewers (~30 s of the demo; the .rrd has it all)")
     p.add_argument("--image-hz", type=float, default=10.0, help="log images, flies and the field at most this often")
     p.add_argument("--pose-hz", type=float, default=30.0,
                    help="log each pose stream at most this often (sensor time): a flood of poses costs no memory")
