@@ -176,23 +176,29 @@ class Inbox:
 
 
 class PoseThinning:
-    """Lets through, per pose stream, one pose per ``period_s`` of sensor time and every status change:
-    the poses :meth:`common.viz.RerunLogger.pose` would log, decided on arrival (Zenoh threads), so that
-    a flood of poses never queues in the inbox faster than the main loop logs it."""
+    """Lets through the poses :meth:`common.viz.RerunLogger.pose` would log (per stream, one per
+    ``period_s`` of sensor time; a rejected or non-finite pose is not one) and every status change,
+    decided on arrival (Zenoh threads), so that a flood of poses never queues in the inbox faster than
+    the main loop logs it. Its clock moves only on a pose the logger logs, as the logger's does."""
 
     def __init__(self, period_s: float):
         self.period_ns = int(period_s * 1e9)
-        self._last: dict[str, tuple[int, str]] = {}
+        self._logged: dict[str, int] = {}
+        self._status: dict[str, str] = {}
         self._lock = threading.Lock()
 
     def keep(self, stream: str, msg) -> bool:
         stamp, status = msg.header.stamp_ns, msg.status
+        loggable = not status.startswith("rejected") and bool(
+            np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation)))
         with self._lock:
-            last = self._last.get(stream)
-            if last is not None and last[1] == status and 0 <= stamp - last[0] < self.period_ns:
-                return False
-            self._last[stream] = (stamp, status)
-            return True
+            changed = status != self._status.get(stream)
+            self._status[stream] = status
+            last = self._logged.get(stream)
+            due = loggable and (last is None or not 0 <= stamp - last < self.period_ns)
+            if due:
+                self._logged[stream] = stamp
+            return due or changed
 
 
 def subscribe_all(node, inbox: Inbox, map_period_s: float, pose_period_s: float):

@@ -107,24 +107,51 @@ def test_a_busy_live_port_still_gives_a_complete_file(zenoh_port, tmp_path):
     assert f"/{P.FLIES}" in rrd_rows(rrd)
 
 
-def test_a_pose_flood_is_thinned_on_arrival_but_every_status_change_gets_through():
-    """1,000 fused poses in one second of sensor time reach the bridge's inbox as ~30 (what the viewer
-    logs), so a stalled main loop cannot fill memory with them; a status flip is never thinned away."""
+def test_a_pose_flood_is_thinned_on_arrival_to_exactly_what_the_viewer_logs():
+    """1,000 fused poses in one second of sensor time, with status flips, rejections and a stamp going
+    back: the bridge's inbox gets ~30 of them (a stalled main loop cannot fill memory with the rest),
+    and the viewer logs the same robot poses and events from those as from all 1,000."""
     from common import messages as m
+    from common.bus import Counters
+    from common.viz import RerunLogger
     from services.bridge import Inbox, PoseThinning
 
-    class _Node:
-        counters = {}
+    class Spy:
+        """A RecordingStream stand-in noting the robot transforms and events logged."""
+        def __init__(self):
+            self.logged = []
 
+        def log(self, path, *args, **kwargs):
+            if path in (P.ROBOT, P.EVENTS) and not kwargs.get("static"):
+                self.logged.append((path, self.t))
+
+        def set_time(self, timeline, **kwargs):
+            self.t = kwargs.get("timestamp", kwargs.get("sequence"))
+
+        def disable_timeline(self, timeline):
+            pass
+
+    class _Node:
+        counters = Counters()
+
+    def poses():
+        for i in range(1000):
+            T = np.eye(4)
+            T[0, 3] = i * 1e-3
+            msg = m.pose_msg(T, seq=i + 1, stamp_ns=10**9 + (i if i != 700 else 650) * 10**6)
+            msg.status = ("odometry only" if i in (500, 510) else "rejected: jump" if 800 <= i < 805 else "ok")
+            yield msg
+
+    everything, thinned = Spy(), Spy()
+    all_logger, thin_logger = RerunLogger(everything), RerunLogger(thinned)
     inbox, thinning = Inbox(_Node()), PoseThinning(1 / 30)
-    for i in range(1000):
-        T = np.eye(4)
-        T[0, 3] = i * 1e-3
-        msg = m.pose_msg(T, seq=i + 1, stamp_ns=10**9 + i * 10**6)
-        msg.status = "odometry only" if i == 500 else "ok"
+    for msg in poses():
+        all_logger.handle("fusion/pose", msg)
         if thinning.keep("fusion/pose", msg):
             inbox.put("fusion/pose", msg)
-    kept = [msg for _, msg in inbox.drain()]
-    assert 28 <= len(kept) <= 34
-    assert [msg.status for msg in kept].count("odometry only") == 1
-    assert kept[-1].header.stamp_ns > 10**9 + 960 * 10**6   # the newest second's tail is still there
+    queued = [msg for _, msg in inbox.drain()]
+    for msg in queued:
+        thin_logger.handle("fusion/pose", msg)
+    assert len(queued) < 60
+    assert thinned.logged == everything.logged
+    assert sum(path == P.ROBOT for path, _ in everything.logged) >= 28
