@@ -87,6 +87,17 @@ def test_the_lattice_offers_distinct_starts_and_the_true_motion_fits_best():
     assert errors(best.T, invert(T_ref_new))[0] < 0.02
 
 
+def test_the_lattice_holds_the_straight_ahead_motion():
+    """A pure forward step: the lattice's best start turns by exactly nothing (its yaw axis keeps the
+    centre) and moves forward, so the alignment starts in the right basin."""
+    T_ref_new = make_transform(np.eye(3), [0.0, 0.0, 1.0])
+    ref, new = pyramid(render(np.eye(4)), 4), pyramid(render(T_ref_new), 4)
+    P = flies_on_the_plane()
+    start = coarse_search(P, np.ones(len(P)), ref, new, K, np.eye(4))
+    assert np.allclose(start[:3, :3], np.eye(3))
+    assert start[2, 3] < -0.5                         # T_new_ref: the scene comes closer
+
+
 def test_malformed_flies_are_refused_with_a_reason():
     ref = pyramid(render(np.eye(4)), 2)
     with pytest.raises(AlignmentError):

@@ -472,7 +472,9 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     zs = axis(0.25 * z_med, step_px * z_med / (0.5 * fx))
     yaws = axis(np.deg2rad(5.0), step_px / fx)
     if max_candidates_per_axis > 5:
-        yaws = yaws[::2]                 # every other yaw: a lateral step mostly looks like one
+        # about half as many yaws (a lateral step mostly looks like one), still spanning ±5° with the
+        # centre's among them (an odd count)
+        yaws = np.linspace(yaws[0], yaws[-1], (len(yaws) + 1) // 2 | 1)
     X, Z, Y = np.meshgrid(xs, zs, yaws, indexing="ij")
     X, Z, Y = X.ravel(), Z.ravel(), Y.ravel()
     c, sn = np.cos(Y), np.sin(Y)
