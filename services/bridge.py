@@ -38,6 +38,7 @@ import rerun as rr  # noqa: E402
 from common import streams as S
 from common.recording import claim_segment
 from common.viz import RerunLogger, blueprint
+from common.viz.logger import PoseRate
 from services.base import run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.bridge")
@@ -176,29 +177,24 @@ class Inbox:
 
 
 class PoseThinning:
-    """Lets through the poses :meth:`common.viz.RerunLogger.pose` would log (per stream, one per
-    ``period_s`` of sensor time; a rejected or non-finite pose is not one) and every status change,
+    """Lets through the poses :meth:`common.viz.RerunLogger.pose` would log (its :class:`PoseRate` rule;
+    a rejected or non-finite pose is not one and does not move the clock) and every status change,
     decided on arrival (Zenoh threads), so that a flood of poses never queues in the inbox faster than
-    the main loop logs it. Its clock moves only on a pose the logger logs, as the logger's does."""
+    the main loop logs it."""
 
     def __init__(self, period_s: float):
-        self.period_ns = int(period_s * 1e9)
-        self._logged: dict[str, int] = {}
+        self._rate = PoseRate(int(period_s * 1e9))
         self._status: dict[str, str] = {}
         self._lock = threading.Lock()
 
     def keep(self, stream: str, msg) -> bool:
-        stamp, status = msg.header.stamp_ns, msg.status
+        status = msg.status
         loggable = not status.startswith("rejected") and bool(
             np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation)))
         with self._lock:
             changed = status != self._status.get(stream)
             self._status[stream] = status
-            last = self._logged.get(stream)
-            due = loggable and (last is None or not 0 <= stamp - last < self.period_ns)
-            if due:
-                self._logged[stream] = stamp
-            return due or changed
+            return (loggable and self._rate.due(stream, msg.header.stamp_ns)) or changed
 
 
 def subscribe_all(node, inbox: Inbox, map_period_s: float, pose_period_s: float):

@@ -33,6 +33,23 @@ SERVICE_PALETTE = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66),
                    (0, 114, 178), (200, 200, 200), (150, 90, 255), (120, 220, 120)]
 
 
+class PoseRate:
+    """At most one pose per ``period_ns`` of sensor time per stream (a stamp going back starts again):
+    the rule of :meth:`RerunLogger.pose`, shared with the bridge's thinning on arrival. Not thread-safe."""
+
+    def __init__(self, period_ns: int):
+        self.period_ns = int(period_ns)
+        self._last: dict[str, int] = {}
+
+    def due(self, stream: str, stamp_ns: int) -> bool:
+        """True (and the stream's clock moves to ``stamp_ns``) when this pose is to be logged."""
+        last = self._last.get(stream)
+        if last is not None and 0 <= stamp_ns - last < self.period_ns:
+            return False
+        self._last[stream] = stamp_ns
+        return True
+
+
 class Trail:
     """A trajectory decimated by distance and cut into segments of at most ``segment_points`` points.
 
@@ -97,8 +114,7 @@ class RerunLogger:
         self.rec = rec
         self.max_flies, self.max_map_points, self.jpeg_quality = max_flies, max_map_points, jpeg_quality
         self.trail_period_ns = int(trail_period_s * 1e9)
-        self.pose_period_ns = int(pose_period_s * 1e9)
-        self._pose_logged_ns: dict[str, int] = {}
+        self._pose_rate = PoseRate(int(pose_period_s * 1e9))
         self._trail_min_step, self._trail_segment_points = trail_min_step_m, trail_segment_points
         self._rng = np.random.default_rng(seed)
         self.calibration_msg: m.StereoCalibrationMsg | None = None
@@ -244,10 +260,8 @@ class RerunLogger:
             return
         if not (np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation))):
             raise ValueError(f"{stream}: non-finite pose")
-        last = self._pose_logged_ns.get(stream)
-        if last is not None and 0 <= stamp - last < self.pose_period_ns:
+        if not self._pose_rate.due(stream, stamp):
             return          # a viewer needs no more than pose_period_s; a flood must not fill its buffer
-        self._pose_logged_ns[stream] = stamp
         rank = BEST_POSE_ORDER.index(stream)
         if self._pose_source is None or rank <= BEST_POSE_ORDER.index(self._pose_source):
             if self._pose_source != stream:
