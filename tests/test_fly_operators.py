@@ -5,8 +5,9 @@ from scipy import stats
 
 from common.camera import StereoCalibration
 from common.fly.fitness import OUTSIDE_FITNESS, ImageError, image_fitness, prepare_frame
-from common.fly.operators import (SharingGrid, backproject_uvd, crossover2, crossover3, exchange_depth, mutate,
-                                  project_uvd)
+from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
+                                  backproject_uvd, camera_vector, crossover2, crossover3, exchange_depth,
+                                  make_offspring, mutate, plan_batch, project_uvd)
 from common.fly.sampling import SamplingError, sample_flies
 from common.fly.synthetic import textured_plane_pair
 
@@ -84,6 +85,43 @@ def test_depth_exchange_keeps_the_pixel_and_takes_the_mates_disparity(calib):
     np.testing.assert_allclose(uk, up, atol=1e-3)
     np.testing.assert_allclose(vk, vp, atol=1e-3)
     np.testing.assert_allclose(dk, dm, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("reach", [8, 6])     # 2·8 mates share one random draw; 2·6 are drawn one by one
+def test_depth_exchange_copies_the_fittest_of_eight_random_neighbours(calib, reach):
+    n, best_of = 4000, 8
+    d = np.linspace(1.0, 40.0, n)                  # fly i's disparity tells which fly a child copied
+    pos = backproject_uvd(calib, np.full(n, 160.0), np.full(n, 120.0), d)
+    fit = np.random.default_rng(1).random(n).astype(np.float32)
+    parents = np.arange(reach, n - reach)
+    child = np.empty((len(parents), 3), np.float32)
+    make_offspring(np.full(len(parents), EXCHANGE), parents, parents, parents, pos, fit,
+                   np.zeros(len(parents), np.float32), np.zeros((0, 3), np.float32), camera_vector(calib), 0.0,
+                   0.0, 100.0, 0.0, 0.0, reach, best_of, 5, child, np.empty(len(parents), np.float32))
+    copied = np.argmin(np.abs(project_uvd(calib, child)[2][:, None] - d[None, :].astype(np.float32)), axis=1)
+    offset = copied - parents
+    assert set(np.unique(offset)) == set(range(-reach, 0)) | set(range(1, reach + 1))
+    # the fittest of the 2·reach neighbours is among best_of uniform draws with this probability
+    best = np.array([p + o for p in parents for o in [np.argmax(
+        [fit[p + k] if k else -1 for k in range(-reach, reach + 1)]) - reach]])
+    expected = 1 - (1 - 1 / (2 * reach)) ** best_of
+    assert abs(np.mean(copied == best) - expected) < 0.03
+
+
+def test_batch_plan_draws_operators_at_their_rates_and_parents_by_tournament():
+    n = 20000
+    shared = np.random.default_rng(2).random(n).astype(np.float32)
+    rates = np.array([0.2, 0.1, 0.1, 0.02, 0.58])          # mutation, crossover2, crossover3, immigrant, exchange
+    ops, parents = np.empty(n, np.int64), np.empty(n, np.int64)
+    plan_batch(np.cumsum(rates), shared, 2, np.zeros(0, np.int64), True, 3, ops, parents)
+    np.testing.assert_allclose(np.bincount(ops, minlength=5) / n, rates, atol=0.01)
+    assert np.all(np.diff(parents) >= 0)                   # sorted by parent: evaluated in image order
+    local = (ops == MUTATION) | (ops == EXCHANGE)
+    assert len(np.unique(parents[local])) == local.sum()   # every fly refines itself at most once
+    crossing = np.isin(ops, (CROSSOVER2, CROSSOVER3))
+    # the fitter of two random flies is in the top half three times in four
+    assert abs(np.mean(shared[parents[crossing]] > np.median(shared)) - 0.75) < 0.03
+    assert np.isin(IMMIGRANT, ops)
 
 
 def test_two_parent_crossover_child_lies_between_parents():

@@ -39,7 +39,8 @@ from common.camera import StereoCalibration
 from common.fly.config import EvolverConfig
 from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
-                                  camera_vector, insert_offspring, make_offspring, project_uvd)
+                                  camera_vector, insert_offspring, make_offspring, plan_batch,
+                                  project_uvd)
 from common.fly.sampling import disparity_bounds, sample_flies
 from common.fly.threads import KernelChooser
 
@@ -231,22 +232,22 @@ class FlyEvolver:
                 self._generational_generation()
             self.generation += 1
 
-    def _operators(self, m: int) -> np.ndarray:
+    def _plan(self, shared: np.ndarray, m: int, own_for_local: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(operators, parents) of a batch of ``m`` children, sorted by parent (operators.plan_batch)."""
         c = self.config
-        p = np.zeros(5)
-        p[[CROSSOVER2, CROSSOVER3, IMMIGRANT, EXCHANGE]] = (c.crossover2_rate, c.crossover3_rate,
-                                                            c.immigration_rate, c.exchange_rate)
-        p[MUTATION] = max(0.0, 1.0 - p.sum())
-        return self.rng.choice(5, size=m, p=p / p.sum())
-
-    def _select_parents(self, shared: np.ndarray, m: int) -> np.ndarray:
-        c, n = self.config, len(shared)
+        rates = np.zeros(5)
+        rates[[CROSSOVER2, CROSSOVER3, IMMIGRANT, EXCHANGE]] = (c.crossover2_rate, c.crossover3_rate,
+                                                                c.immigration_rate, c.exchange_rate)
+        rates[MUTATION] = max(0.0, 1.0 - rates.sum())
         if c.selection == "tournament":
-            cand = self.rng.integers(0, n, (m, c.tournament_size))
-            return cand[np.arange(m), np.argmax(shared[cand], axis=1)]
-        k = max(1, int(round(c.elite_fraction * n)))
-        top = np.argpartition(-shared, k - 1)[:k]
-        return top[self.rng.integers(0, k, m)]
+            size, pool = int(c.tournament_size), np.zeros(0, np.int64)
+        else:
+            k = max(1, int(round(c.elite_fraction * len(shared))))
+            size, pool = 0, np.argpartition(-shared, k - 1)[:k].astype(np.int64)
+        ops, parents = np.empty(m, np.int64), np.empty(m, np.int64)
+        plan_batch(np.cumsum(rates / rates.sum()), np.ascontiguousarray(shared, np.float32), size, pool,
+                   bool(own_for_local), int(self.rng.integers(2 ** 62)), ops, parents)
+        return ops, parents
 
     def _make_offspring(self, parents: np.ndarray, ops: np.ndarray, parent_sigma: np.ndarray):
         """Children positions and disparity steps (one numba loop over the batch, see operators)."""
@@ -272,18 +273,11 @@ class FlyEvolver:
         while done < n:
             m = min(batch, n - done)
             done += m
-            shared = self.shared_fitness()
-            ops = self._operators(m)
-            # Parents in population (cell) order: children land near them, so the batch is evaluated in
-            # image order too (cache-friendly); the operators are iid, so pairing stays random.
-            parents = self._select_parents(shared, m)
-            if c.crowding and m == n:
-                # Local operators (mutation, depth exchange) refine the parent in its own niche: every fly
-                # gets its turn once per generation instead of the fittest getting most of them.
-                local = (ops == MUTATION) | (ops == EXCHANGE)
-                parents = np.where(local, np.arange(n), parents)
-            order = np.argsort(parents, kind="stable")
-            parents, ops = parents[order], ops[order]
+            # With crowding over the whole population, local operators (mutation, depth exchange) refine
+            # the parent in its own niche: every fly gets its turn once per generation instead of the
+            # fittest getting most of them.  Parents come in population (cell) order: children land near
+            # them, so the batch is evaluated in image order too (cache-friendly).
+            ops, parents = self._plan(self.shared_fitness(), m, own_for_local=c.crowding and m == n)
             child, sigma = self._make_offspring(parents, ops, self._sigma_d[parents])
             fit = self.evaluate(child)
             g = self.sharing
@@ -301,8 +295,7 @@ class FlyEvolver:
         n_elite = int(round(c.elite_fraction * n)) if c.selection == "elitist" else 0
         elite = np.argpartition(-shared, n_elite - 1)[:n_elite] if n_elite else np.zeros(0, np.int64)
         m = n - n_elite
-        ops = self._operators(m)
-        parents = np.sort(self._select_parents(shared, m))
+        ops, parents = self._plan(shared, m, own_for_local=False)
         sigma = self._sigma_d[parents]
         if c.adaptive_mutation:
             # Log-normal self-adaptation: a mutated child carries its own step, selection keeps good ones.

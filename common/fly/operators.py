@@ -61,14 +61,90 @@ def _to_point(u, v, d, cam, out, i):
 
 
 @numba.njit(cache=True)
-def _local_mate(p, n, reach):
-    """A random neighbour of ``p`` in the cell-ordered population: ±1…±reach places."""
-    r = np.random.randint(0, 2 * reach)
+def _mate_at(p, n, reach, r):
+    """Neighbour ``r`` (in [0, 2·reach)) of ``p`` in the cell-ordered population: ±1…±reach places."""
     off = r - reach if r < reach else r - reach + 1
     m = p + off
     if m < 0 or m >= n:
         m = p - off
     return min(max(m, 0), n - 1)
+
+
+@numba.njit(cache=True)
+def _local_mate(p, n, reach):
+    """A random neighbour of ``p`` in the cell-ordered population: ±1…±reach places."""
+    return _mate_at(p, n, reach, np.random.randint(0, 2 * reach))
+
+
+@numba.njit(cache=True)
+def _mate_bits(reach, extra):
+    """Bits per mate when ``extra`` uniform mates among 2·reach can share one ≤62-bit draw (2·reach a
+    power of two), else 0."""
+    b = 1
+    while (1 << b) < 2 * reach:
+        b += 1
+    return b if (1 << b) == 2 * reach and b * extra <= 62 else 0
+
+
+@numba.njit(cache=True)
+def _fittest_local_mate(p, m1, n, reach, best_of, bits, fit):
+    """The fittest of ``m1`` and ``best_of`` − 1 more random neighbours of ``p``.  With ``bits`` > 0
+    (see _mate_bits) the extra neighbours come from the bit fields of one draw: the same distribution as
+    one draw each, at a fraction of the cost (this is most of what the exchange operator spends)."""
+    if bits > 0 and best_of > 1:
+        word = np.random.randint(0, 1 << (bits * (best_of - 1)))
+        mask = (1 << bits) - 1
+        for j in range(best_of - 1):
+            q = _mate_at(p, n, reach, (word >> (bits * j)) & mask)
+            if fit[q] > fit[m1]:
+                m1 = q
+        return m1
+    for _ in range(best_of - 1):
+        q = _local_mate(p, n, reach)
+        if fit[q] > fit[m1]:
+            m1 = q
+    return m1
+
+
+@numba.njit(cache=True)
+def plan_batch(cum_rates, shared, tournament_size, pool, own_for_local, seed, ops, parents):
+    """Operators and parents of one batch, written into ``ops`` and ``parents`` sorted by parent.
+
+    Operator i is drawn with the cumulative probabilities ``cum_rates`` (indexed by operator code).  Its
+    parent is fly i itself for mutation and exchange when ``own_for_local`` (deterministic crowding over a
+    whole-population batch), else the fittest by ``shared`` of ``tournament_size`` random flies, or with
+    ``tournament_size`` 0 a uniform draw from ``pool`` (elitist selection).  The sort (a stable counting
+    sort) puts children next to their parents' image neighbours: the batch is evaluated in image order."""
+    np.random.seed(seed)
+    m, n = ops.shape[0], shared.shape[0]
+    raw_ops = np.empty(m, np.int64)
+    raw_parents = np.empty(m, np.int64)
+    counts = np.zeros(n + 1, np.int64)
+    for i in range(m):
+        r = np.random.random()
+        op = 0
+        while op < cum_rates.shape[0] - 1 and r >= cum_rates[op]:
+            op += 1
+        if own_for_local and (op == MUTATION or op == EXCHANGE):
+            p = i
+        elif tournament_size > 0:
+            p = np.random.randint(0, n)
+            for _ in range(tournament_size - 1):
+                q = np.random.randint(0, n)
+                if shared[q] > shared[p]:
+                    p = q
+        else:
+            p = pool[np.random.randint(0, pool.shape[0])]
+        raw_ops[i] = op
+        raw_parents[i] = p
+        counts[p + 1] += 1
+    for j in range(n):
+        counts[j + 1] += counts[j]
+    for i in range(m):
+        k = counts[raw_parents[i]]
+        counts[raw_parents[i]] += 1
+        ops[k] = raw_ops[i]
+        parents[k] = raw_parents[i]
 
 
 @numba.njit(cache=True)
@@ -92,6 +168,7 @@ def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigra
     np.random.seed(seed)
     n = pos.shape[0]
     k = 0
+    bits = _mate_bits(mate_reach, exchange_best_of - 1) if mate_reach > 0 else 0
     for i in range(ops.shape[0]):
         p = parents[i]
         op = ops[i]
@@ -114,10 +191,7 @@ def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigra
                 d += np.random.normal(0.0, 1.0) * parent_sigma[i]
             else:
                 if mate_reach > 0:
-                    for _ in range(exchange_best_of - 1):
-                        q = _local_mate(p, n, mate_reach)
-                        if fit[q] > fit[m1]:
-                            m1 = q
+                    m1 = _fittest_local_mate(p, m1, n, mate_reach, exchange_best_of, bits, fit)
                 _, _, d = _uvd(pos[m1, 0], pos[m1, 1], pos[m1, 2], cam)
                 d += np.random.normal(0.0, 1.0) * exchange_sigma
             d = min(max(d, d_lo), d_hi)
