@@ -6,7 +6,7 @@ from scipy import stats
 from common.camera import StereoCalibration
 from common.fly.fitness import OUTSIDE_FITNESS, ImageError, image_fitness, prepare_frame
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
-                                  backproject_uvd, camera_vector, crossover2, crossover3, exchange_depth,
+                                  backproject_uvd, camera_vector, cell_order, crossover2, crossover3, exchange_depth,
                                   make_offspring, mutate, plan_batch, project_uvd)
 from common.fly.sampling import SamplingError, sample_flies
 from common.fly.synthetic import textured_plane_pair
@@ -122,6 +122,13 @@ def test_batch_plan_draws_operators_at_their_rates_and_parents_by_tournament():
     # the fitter of two random flies is in the top half three times in four
     assert abs(np.mean(shared[parents[crossing]] > np.median(shared)) - 0.75) < 0.03
     assert np.isin(IMMIGRANT, ops)
+
+
+def test_population_order_is_by_cell_with_flies_outside_the_image_last():
+    cells = np.random.default_rng(4).integers(-1, 50, 3000)
+    order = cell_order(cells, 50)
+    key = np.where(cells < 0, 50, cells)
+    np.testing.assert_array_equal(order, np.argsort(key, kind="stable"))
 
 
 def test_two_parent_crossover_child_lies_between_parents():

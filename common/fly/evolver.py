@@ -39,8 +39,8 @@ from common.camera import StereoCalibration
 from common.fly.config import EvolverConfig
 from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
-                                  camera_vector, insert_offspring, make_offspring, plan_batch,
-                                  project_uvd)
+                                  camera_vector, cell_order, insert_offspring, make_offspring,
+                                  plan_batch, project_uvd)
 from common.fly.sampling import disparity_bounds, sample_flies
 from common.fly.threads import KernelChooser
 
@@ -209,11 +209,14 @@ class FlyEvolver:
         self._cells = self.sharing.cells(u, v)
         self.sharing.update(self._cells)
 
-    def _reorder(self) -> None:
-        """Recompute sharing cells and sort the population by cell (cache locality, local mates)."""
-        u, v, _ = project_uvd(self.calib, self._pos)
-        cells = self.sharing.cells(u, v)
-        order = np.argsort(np.where(cells < 0, np.iinfo(np.int64).max, cells), kind="stable")
+    def _reorder(self, cells_current: bool = False) -> None:
+        """Sort the population by sharing cell (cache locality, local mates).  ``cells_current``: every
+        fly's cell is already up to date (steady-state insertion keeps them), else they are recomputed."""
+        cells = self._cells
+        if not cells_current:
+            u, v, _ = project_uvd(self.calib, self._pos)
+            cells = self.sharing.cells(u, v)
+        order = cell_order(cells, self.sharing.cols * self.sharing.rows)
         self._pos, self._fit, self._sigma_d = self._pos[order], self._fit[order], self._sigma_d[order]
         self._cells = cells[order]
         self.sharing.update(self._cells)
@@ -286,7 +289,7 @@ class FlyEvolver:
                              float(g.expected), float(g.strength), float(g.cell), g.cols, g.rows, self._cam,
                              bool(c.crowding), bool(c.adaptive_mutation), _STEP_UP, _STEP_DOWN,
                              float(c.mutation_sigma_disparity_min), float(self._sigma_max))
-        self._reorder()
+        self._reorder(cells_current=True)
 
     def _generational_generation(self) -> None:
         c, rng = self.config, self.rng

@@ -345,6 +345,23 @@ def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child
     return inserted
 
 
+@numba.njit(cache=True)
+def cell_order(cells, n_cells):
+    """Order of flies by sharing cell, flies outside the image (cell −1) last, ties in index order: a
+    counting sort, O(N + cells)."""
+    start = np.zeros(n_cells + 2, np.int64)
+    for c in cells:
+        start[(c if c >= 0 else n_cells) + 1] += 1
+    for j in range(n_cells + 1):
+        start[j + 1] += start[j]
+    order = np.empty(cells.shape[0], np.int64)
+    for i in range(cells.shape[0]):
+        c = cells[i] if cells[i] >= 0 else n_cells
+        order[start[c]] = i
+        start[c] += 1
+    return order
+
+
 class SharingGrid:
     """2-D fitness sharing over square cells of the left image.
 
