@@ -8,7 +8,8 @@ A digit string is a device index, ``/dev/...`` a device path, anything else a vi
 ``--calibration`` names the OpenCV stereo YAML (format in common/stereo_rectify.py; repeat the option
 to merge OpenCV's intrinsics.yml + extrinsics.yml). Rectification maps are computed once (alpha=0).
 Publishes ``<robot>/stereo/frame`` (rectified, ``--encoding`` rgb8 | mono8 | jpeg | png) stamped with the
-capture wall-clock time, and ``<robot>/stereo/calibration`` (latched, re-published every
+capture wall-clock time (a video file: its frame's time in the video from the start of the run, late
+frames skipped as a camera would have moved on), and ``<robot>/stereo/calibration`` (latched, re-published every
 ``--calibration-period`` s). Devices are asked for the calibrated resolution; a device, file or
 calibration that does not fit ends the process with status 2 and a one-line message saying which.
 """
@@ -128,6 +129,19 @@ class StereoCapture:
             raise CameraError(f"{', '.join(describe(s) for s in self.specs)}: no frame (disconnected?)")
         return pair
 
+    def skip(self, n: int) -> bool:
+        """Pass over the next ``n`` frames without decoding them; False when the files end first."""
+        for _ in range(n):
+            if self._first is not None:
+                self._first = None
+                continue
+            if not all(c.grab() for c in self.caps):
+                if not (self.is_file and self.loop):
+                    return False
+                for c in self.caps:
+                    c.set(cv2.CAP_PROP_POS_FRAMES, 0)
+        return True
+
     def close(self) -> None:
         for c in self.caps:
             c.release()
@@ -181,7 +195,12 @@ def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: fl
     frames = node.publisher(S.STEREO_FRAME)
     calib_pub = node.publisher(S.STEREO_CALIBRATION)
     period = 1.0 / fps if fps and fps > 0 else 0.0
-    next_due = time.monotonic()
+    # A video file stands in for a camera: its frame i was taken at start + i·period.  A late reader
+    # skips to the frame the camera would show now (a camera does not wait) and stamps each frame with
+    # its own time, so a busy machine drops frames instead of slowing the world down.
+    on_file_clock = bool(period) and capture.is_file
+    start, start_ns, index = time.monotonic(), time.time_ns(), 0
+    next_due = start
     next_calib = 0.0
     seq = 0
     while not node.stopping:
@@ -189,7 +208,20 @@ def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: fl
         if now >= next_calib:
             calib_pub.publish(calibration_to_msg(pipeline.calib, stamp_ns=time.time_ns()))
             next_calib = now + calibration_period
-        if period:
+        if on_file_clock:
+            due = start + index * period
+            if now < due and not node.sleep(due - now):
+                break
+            behind = int((time.monotonic() - due) / period)
+            try:
+                if behind > 0 and not capture.skip(behind):
+                    log.info("end of the video after %d frames", seq)
+                    return 0
+            except CameraError as e:
+                log.error("%s", e)
+                return 1
+            index += behind
+        elif period:
             if now < next_due and not node.sleep(next_due - now):
                 break
             next_due = max(next_due + period, time.monotonic())  # late: restart the clock, no burst
@@ -202,7 +234,9 @@ def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: fl
             log.info("end of the video after %d frames", seq)
             return 0
         seq += 1
-        frames.publish(pipeline.frame(*pair, seq=seq, stamp_ns=time.time_ns()))
+        stamp_ns = start_ns + int(round(index * period * 1e9)) if on_file_clock else time.time_ns()
+        index += 1
+        frames.publish(pipeline.frame(*pair, seq=seq, stamp_ns=stamp_ns))
         node.progress = seq
     return 0
 

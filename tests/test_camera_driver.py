@@ -7,6 +7,8 @@ rectified images and the rig's calibration.
 """
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 import pytest
@@ -194,3 +196,40 @@ def test_camera_process_publishes_frames_and_latched_calibration(videos, zenoh_p
     finally:
         code = stop(proc)
     assert code == 0, (tmp_path / "camera.log").read_text()
+
+
+class _SlowNode:
+    """A bus node stand-in whose frame publisher takes 2.5 frame periods (a busy machine)."""
+    stopping, progress = False, 0
+
+    def __init__(self):
+        self.frames = []
+
+    def publisher(self, stream):
+        node = self
+
+        class Pub:
+            def publish(self, msg):
+                if isinstance(msg, StereoFrame):
+                    node.frames.append(msg)
+                    time.sleep(0.25)
+        return Pub()
+
+    def sleep(self, seconds):
+        time.sleep(seconds)
+        return True
+
+
+def test_a_video_played_as_a_camera_on_a_busy_machine_drops_frames_and_keeps_their_times(videos):
+    d, _, truth = videos
+    calib = load_calibration(d / "stereo.yaml")
+    capture = camera.StereoCapture(calib, left=str(d / "left.avi"), right=str(d / "right.avi"))
+    node = _SlowNode()
+    assert camera.publish_loop(node, capture, camera.StereoPipeline(calib, "rgb8"), 10.0, 60.0) == 0
+    capture.close()
+    assert 2 <= len(node.frames) < N_FRAMES                # late frames were skipped, not queued
+    for msg in node.frames:
+        left, _ = frame_images(msg)
+        shown = int(np.argmin([_interior_error(left, t[0]) for t in truth]))
+        # each frame is stamped with its time in the video (10 frames/s), not with when it was read
+        assert (msg.header.stamp_ns - node.frames[0].header.stamp_ns) * 1e-8 == pytest.approx(shown, abs=1e-6)
