@@ -110,8 +110,9 @@ def reference_gauss_newton(P, w, ref_pyr, new_pyr, T, iterations=12, huber_px=1.
     """align_flies written out in plain numpy (a Jacobian array per level, a full median, the normal
     equations summed per residual, LAPACK solves): what the fused kernels must reproduce."""
     from common.geometry import orthonormalised
-    from common.registration.photometric import PATTERN, _sample, se3_exp
+    from common.registration.photometric import COARSE_STOP_PX, FINE_STOP_PX, PATTERN, _sample, se3_exp
     rng, T, iters, H = np.random.default_rng(0), T.copy(), 0, np.eye(6)
+    z_typical = np.median(P[:, 2])
     for level in range(len(ref_pyr) - 1, -1, -1):
         n_level = max(min_flies, int(len(P) * 0.25 ** level * 4))
         pick = np.sort(rng.choice(len(P), n_level, replace=False)) if n_level < len(P) else np.arange(len(P))
@@ -155,7 +156,9 @@ def reference_gauss_newton(P, w, ref_pyr, new_pyr, T, iterations=12, huber_px=1.
             inliers = float((np.abs(r) <= k)[valid].mean())
             dxi = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
             T = orthonormalised(T @ np.linalg.inv(se3_exp(dxi)))
-            if np.max(np.abs(dxi[:3])) < 1e-4 and np.max(np.abs(dxi[3:])) < 1e-5:
+            # converged: the step moves a fly at the median depth by under the level's stop, in its pixels
+            if fx * (np.linalg.norm(dxi[:3]) / z_typical + np.linalg.norm(dxi[3:])) < (
+                    FINE_STOP_PX if level == 0 else COARSE_STOP_PX):
                 break
     return T, sigma, inliers, iters
 

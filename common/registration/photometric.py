@@ -29,6 +29,11 @@ from scipy.ndimage import minimum_filter
 
 from common.geometry import orthonormalised, so3_exp
 
+# Gauss-Newton stops when a step moves a fly at the flies' median depth by less than this, in pixels of
+# the level: at full resolution a hundredth of a pixel; a coarse level only has to bring the next one
+# into its basin.
+FINE_STOP_PX = 0.01
+COARSE_STOP_PX = 0.1
 PATTERN = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.float32)   # (9, 2) px
 
 
@@ -262,10 +267,11 @@ def _compose_inverse_increment(T, xi):
 
 @njit(cache=True)
 def _gauss_newton(P, weights, valid_ref, ref0, J, A, T, img, fx, fy, cx, cy, z_min, iterations, min_flies,
-                  huber_px, r, valid, H):
+                  huber_px, r, valid, H, z_typical, stop_px):
     """Up to ``iterations`` robust Gauss-Newton steps of one pyramid level, T updated in place and H
-    the last normal matrix. Returns (iterations run, status, robust scale σ̂, inlier share, flies in
-    view); status 0 converged or ran out of iterations, 1 too few flies in view, 2 singular."""
+    the last normal matrix; converged when a step moves a fly at depth ``z_typical`` by under
+    ``stop_px`` pixels of this level. Returns (iterations run, status, robust scale σ̂, inlier share,
+    flies in view); status 0 converged or ran out of iterations, 1 too few flies in view, 2 singular."""
     g = np.empty(6)
     M = np.empty((6, 6))
     dxi = np.empty(6)
@@ -292,8 +298,9 @@ def _gauss_newton(P, weights, valid_ref, ref0, J, A, T, img, fx, fy, cx, cy, z_m
         if not _solve6(M, g, dxi):
             return it + 1, 2, sigma, 0.0, used
         _compose_inverse_increment(T, dxi)
-        if (max(abs(dxi[0]), abs(dxi[1]), abs(dxi[2])) < 1e-4
-                and max(abs(dxi[3]), abs(dxi[4]), abs(dxi[5])) < 1e-5):
+        moved = np.sqrt(dxi[0] ** 2 + dxi[1] ** 2 + dxi[2] ** 2) / z_typical
+        turned = np.sqrt(dxi[3] ** 2 + dxi[4] ** 2 + dxi[5] ** 2)
+        if fx * (moved + turned) < stop_px:
             return it + 1, 0, sigma, inlier_frac, used
     return iterations, 0, sigma, inlier_frac, used
 
@@ -392,6 +399,7 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
     if len(P_all) < min_flies:
         return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, len(P_all), 0, False,
                          f"too few flies to align: {len(P_all)} (need {min_flies})")
+    z_typical = float(np.median(P_all[:, 2]))
     total_iters = 0
     H = np.eye(6)
     sigma = np.nan
@@ -403,7 +411,7 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
         valid = np.empty(len(P), np.bool_)
         its, status, sigma, inlier_frac, used = _gauss_newton(
             P, w, valid_ref, ref0, J, A, T, Inew, fx, fy, cx, cy, float(depth_range[0]), int(iterations),
-            int(min_flies), float(huber_px), r, valid, H)
+            int(min_flies), float(huber_px), r, valid, H, z_typical, FINE_STOP_PX if level == 0 else COARSE_STOP_PX)
         total_iters += its
         T = orthonormalised(T)
         if status == 1 and level > 0:
