@@ -11,7 +11,13 @@ ground truth re-expressed for it (poses of the frames kept, in the variant's bas
 * ``half``: images and intrinsics at half resolution (a 620×188 camera);
 * ``crop640``: the central 640 columns (a narrower field of view: 48° instead of 82°);
 * ``mount0``: the rig's ``T_base_camera`` without its height (base_link at the camera, as a
-  calibration without a mounting gives it).
+  calibration without a mounting gives it);
+* ``noisy``: Gaussian sensor noise of σ = 6 grey levels, independent in every image (a cheaper camera,
+  a darker scene);
+* ``gain``: the right camera 20 % less exposed and 10 grey levels offset (two auto-exposures that do
+  not agree, common on hobby stereo rigs);
+* ``exposure``: both cameras' exposure swinging ±30 % over a few frames (auto-exposure driving in and
+  out of shade).
 """
 from __future__ import annotations
 
@@ -25,7 +31,7 @@ from common.geometry import invert
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
-VARIANTS = ("stride2", "stride3", "reverse", "half", "crop640", "mount0")
+VARIANTS = ("stride2", "stride3", "reverse", "half", "crop640", "mount0", "noisy", "gain", "exposure")
 
 
 def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
@@ -65,6 +71,15 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
             left, right = (cv2.resize(img, size, interpolation=cv2.INTER_AREA) for img in (left, right))
         if x0:
             left, right = (np.ascontiguousarray(img[:, x0:x0 + 640]) for img in (left, right))
+        if name == "noisy":
+            rng = np.random.default_rng(int(index[i]))
+            left, right = (np.clip(img + rng.normal(0.0, 6.0, img.shape), 0, 255).astype(np.uint8)
+                           for img in (left, right))
+        if name == "exposure":
+            g = 1.0 + 0.3 * np.sin(int(index[i]) / 2.0)
+            left, right = (np.clip(img.astype(np.float32) * g, 0, 255).astype(np.uint8) for img in (left, right))
+        if name == "gain":
+            right = np.clip(right.astype(np.float32) * 0.8 + 10.0, 0, 255).astype(np.uint8)
         return left, right
 
     return StereoDataset(f"{ds.name}, {name}", calib, stamps, load_pair, stamps, truth)
