@@ -243,7 +243,9 @@ def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: fl
 
 def main(argv: list[str] | None = None) -> int:
     from common.bus import Node, bus_options, setup_logging
+    from services.base import one_opencv_thread
     args = build_parser().parse_args(argv)
+    one_opencv_thread()
     setup_logging("camera")
     try:
         calib = load_calibration(args.calibration, args.units_m)
