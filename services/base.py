@@ -50,9 +50,11 @@ def one_opencv_thread() -> None:
     the machine's cores as separate processes; OpenCV's own pool only adds wake-ups and spinning: two
     640×480 JPEG decodes took 3.0-3.6 CPU-ms with its default 2 threads against 1.9-2.4 with one, in the
     same wall time."""
-    threads = int(os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1"))   # read when cv2 loads
-    if "cv2" in sys.modules:                                                # ... or already loaded
-        sys.modules["cv2"].setNumThreads(threads)
+    value = os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")   # read when cv2 loads ...
+    if not value.isdigit() or int(value) < 1:
+        raise SystemExit(f"flyslam: OPENCV_FOR_THREADS_NUM must be a whole number of threads ≥ 1, got {value!r}")
+    if "cv2" in sys.modules:                                        # ... or set now when it is loaded
+        sys.modules["cv2"].setNumThreads(int(value))
 
 
 def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node, argparse.Namespace], int | None],

@@ -130,16 +130,19 @@ class StereoCapture:
         return pair
 
     def skip(self, n: int) -> bool:
-        """Pass over the next ``n`` frames without decoding them; False when the files end first."""
+        """Pass over the next ``n`` frames (grabbed, not retrieved); False when the files end first."""
         for _ in range(n):
             if self._first is not None:
                 self._first = None
                 continue
+            if all(c.grab() for c in self.caps):
+                continue
+            if not (self.is_file and self.loop):
+                return False
+            for c in self.caps:                   # a looped video: the skipped frame is the first again
+                c.set(cv2.CAP_PROP_POS_FRAMES, 0)
             if not all(c.grab() for c in self.caps):
-                if not (self.is_file and self.loop):
-                    return False
-                for c in self.caps:
-                    c.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                return False
         return True
 
     def close(self) -> None:

@@ -233,3 +233,13 @@ def test_a_video_played_as_a_camera_on_a_busy_machine_drops_frames_and_keeps_the
         shown = int(np.argmin([_interior_error(left, t[0]) for t in truth]))
         # each frame is stamped with its time in the video (10 frames/s), not with when it was read
         assert (msg.header.stamp_ns - node.frames[0].header.stamp_ns) * 1e-8 == pytest.approx(shown, abs=1e-6)
+
+
+def test_skipping_past_the_end_of_a_looped_video_lands_on_the_right_frame(videos):
+    d, _, truth = videos
+    calib = load_calibration(d / "stereo.yaml")
+    capture = camera.StereoCapture(calib, left=str(d / "left.avi"), right=str(d / "right.avi"), loop=True)
+    assert capture.skip(N_FRAMES + 1)                       # frames 0-4, then 0 again
+    left, _ = frame_images(camera.StereoPipeline(calib, "rgb8").frame(*capture.read(), seq=1, stamp_ns=0))
+    capture.close()
+    assert int(np.argmin([_interior_error(left, t[0]) for t in truth])) == 1

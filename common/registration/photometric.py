@@ -399,7 +399,7 @@ def align_flies(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: list[n
     if len(P_all) < min_flies:
         return Alignment(T, np.full((6, 6), np.nan), np.nan, 0.0, len(P_all), 0, False,
                          f"too few flies to align: {len(P_all)} (need {min_flies})")
-    z_typical = float(np.median(P_all[:, 2]))
+    z_typical = max(float(np.median(P_all[:, 2])), 1e-6)
     total_iters = 0
     H = np.eye(6)
     sigma = np.nan
