@@ -316,6 +316,10 @@ class Publisher:
         self._node.counters.add("published")
         return payload
 
+    def has_subscribers(self) -> bool:
+        """Whether a subscriber somewhere on the bus matches this key now."""
+        return bool(self._pub.matching_status.matching)
+
     def put_raw(self, payload: bytes) -> None:
         """Publish already-encoded bytes unchanged (replay)."""
         self._pub.put(payload)

@@ -193,6 +193,9 @@ def build_parser():
     return p
 
 
+FILE_WAIT_SUBSCRIBERS_S = 10.0   # a video file waits this long at most for the first frame's subscriber
+
+
 def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: float | None,
                  calibration_period: float) -> int:
     frames = node.publisher(S.STEREO_FRAME)
@@ -202,6 +205,11 @@ def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: fl
     # skips to the frame the camera would show now (a camera does not wait) and stamps each frame with
     # its own time, so a busy machine drops frames instead of slowing the world down.
     on_file_clock = bool(period) and capture.is_file
+    if on_file_clock:
+        # ... and it starts when someone watches: frames played to nobody would be lost to the run.
+        deadline = time.monotonic() + FILE_WAIT_SUBSCRIBERS_S
+        while not frames.has_subscribers() and time.monotonic() < deadline and node.sleep(0.05):
+            pass
     start, start_ns, index = time.monotonic(), time.time_ns(), 0
     next_due = start
     next_calib = 0.0
