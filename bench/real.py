@@ -195,22 +195,19 @@ def disputed_truth(truth_stamps, truth, tracks: dict, min_frames: int = 3, rel: 
         at = {int(np.argmin(np.abs(ts - st))): T for st, T in zip(stamps, poses)}
         steps[name] = {k: float(np.linalg.norm(at[k][:3, 3] - at[k - 1][:3, 3])) for k in at if k - 1 in at}
     common = sorted(set.intersection(*(set(v) for v in steps.values()))) if steps else []
-    runs, current = [], []
+    rows = []                                   # (frame, truth's step, methods' mean step) of disputed steps
     for k in common:
         s_t = float(np.linalg.norm(truth[k][:3, 3] - truth[k - 1][:3, 3]))
         s = np.array([steps[name][k] for name in steps])
         gap = abs(s.mean() - s_t)
-        disputed = gap > rel * s_t and np.ptp(s) < 0.5 * gap
-        if disputed and current and current[-1][0] == k - 1:
-            current.append((k, s_t, s.mean()))
-        else:
-            if len(current) >= min_frames:
-                runs.append(current)
-            current = [(k, s_t, s.mean())] if disputed else []
-    if len(current) >= min_frames:
-        runs.append(current)
-    return [[r[0][0], r[-1][0], round(float(np.mean([x[1] for x in r])), 3), round(float(np.mean([x[2] for x in r])), 3)]
-            for r in runs]
+        if gap > rel * s_t and np.ptp(s) < 0.5 * gap:
+            rows.append((k, s_t, s.mean()))
+    if not rows:
+        return []
+    rows = np.array(rows)
+    runs = np.split(rows, np.flatnonzero(np.diff(rows[:, 0]) != 1) + 1)
+    return [[int(r[0, 0]), int(r[-1, 0]), round(float(r[:, 1].mean()), 3), round(float(r[:, 2].mean()), 3)]
+            for r in runs if len(r) >= min_frames]
 
 
 def print_table(runs: dict[str, dict]) -> None:

@@ -47,9 +47,8 @@ def survive(node: Node, what: str, log: logging.Logger, on: str = ""):
 
 def one_opencv_thread() -> None:
     """OpenCV calls run on the calling thread (``OPENCV_FOR_THREADS_NUM`` overrides).  The services share
-    the machine's cores as separate processes; OpenCV's own pool only adds wake-ups and spinning: two
-    640×480 JPEG decodes took 3.0-3.6 CPU-ms with its default 2 threads against 1.9-2.4 with one, in the
-    same wall time."""
+    the machine's cores as separate processes; OpenCV's own pool only adds wake-ups and spinning (more
+    CPU for the same wall time)."""
     value = os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")   # read when cv2 loads ...
     if not value.isdigit() or int(value) < 1:
         raise SystemExit(f"flyslam: OPENCV_FOR_THREADS_NUM must be a whole number of threads ≥ 1, got {value!r}")

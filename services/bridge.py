@@ -29,16 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
-# Rerun's native allocator (mimalloc) by default keeps freed pages for 10 ms before returning them; with
-# images and thousands of small log calls a second, the bridge's RSS crept up ~0.4 MB/s. Returning them
-# at once (read when rerun's library loads, so before the import) about halves that creep.
+# Rerun's native allocator (mimalloc) by default keeps freed pages for a while before returning them; with
+# images and thousands of small log calls a second the bridge's RSS crept up. Returning them at once
+# (read when rerun's library loads, so before the import) slows that creep.
 os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
 import rerun as rr  # noqa: E402
 
 from common import streams as S
 from common.recording import claim_segment
 from common.viz import RerunLogger, blueprint
-from common.viz.logger import PoseRate
+from common.viz.logger import PoseRate, finite_pose
 from services.base import run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.bridge")
@@ -189,8 +189,7 @@ class PoseThinning:
 
     def keep(self, stream: str, msg) -> bool:
         status = msg.status
-        loggable = not status.startswith("rejected") and bool(
-            np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation)))
+        loggable = not status.startswith("rejected") and finite_pose(msg)
         with self._lock:
             changed = status != self._status.get(stream)
             self._status[stream] = status

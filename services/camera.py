@@ -224,13 +224,9 @@ def publish_loop(node, capture: StereoCapture, pipeline: StereoPipeline, fps: fl
             if now < due and not node.sleep(due - now):
                 break
             behind = int((time.monotonic() - due) / period)
-            try:
-                if behind > 0 and not capture.skip(behind):
-                    log.info("end of the video after %d frames", seq)
-                    return 0
-            except CameraError as e:
-                log.error("%s", e)
-                return 1
+            if behind > 0 and not capture.skip(behind):
+                log.info("end of the video after %d frames", seq)
+                return 0
             index += behind
         elif period:
             if now < next_due and not node.sleep(next_due - now):

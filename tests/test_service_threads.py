@@ -1,5 +1,5 @@
 """Every service runs OpenCV on its calling thread: the services share the cores as processes, and
-OpenCV's own pool only burns CPU on wake-ups (a JPEG decode cost ~50 % more CPU with 2 threads)."""
+OpenCV's own pool only burns CPU on wake-ups."""
 import os
 import subprocess
 import sys

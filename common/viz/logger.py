@@ -33,6 +33,11 @@ SERVICE_PALETTE = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66),
                    (0, 114, 178), (200, 200, 200), (150, 90, 255), (120, 220, 120)]
 
 
+def finite_pose(msg: m.PoseEstimate) -> bool:
+    """Whether a pose's position and orientation are finite (what the viewer can draw)."""
+    return bool(np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation)))
+
+
 class PoseRate:
     """At most one pose per ``period_ns`` of sensor time per stream (a stamp going back starts again):
     the rule of :meth:`RerunLogger.pose`, shared with the bridge's thinning on arrival. Not thread-safe."""
@@ -258,7 +263,7 @@ class RerunLogger:
         self._last_status[stream] = msg.status
         if msg.status.startswith("rejected"):
             return
-        if not (np.all(np.isfinite(msg.position)) and np.all(np.isfinite(msg.orientation))):
+        if not finite_pose(msg):
             raise ValueError(f"{stream}: non-finite pose")
         if not self._pose_rate.due(stream, stamp):
             return          # a viewer needs no more than pose_period_s; a flood must not fill its buffer
