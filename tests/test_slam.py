@@ -256,3 +256,30 @@ def test_tracking_pins_from_the_start_what_the_last_frame_found_on_the_window_ed
     # frame 1: full window, then pinned again; frames 2-4: pinned from the start; frame 5: full window
     # again (and pinned again), frames 6-8 pinned; frame 9 full window...
     assert pinned_x == [False, True, True, True, True, False, True, True, True, True, False, True]
+
+
+def test_a_first_fix_long_after_the_maps_origin_restarts_the_map():
+    """Visual-only, the motion unknown: a live start whose next population comes long after the map's
+    origin (the evolver's first frame was slow) starts the map again from it rather than searching a
+    motion beyond reach; the limit doubles at each restart, so a slow machine still gets its first fix."""
+    rng = np.random.default_rng(7)
+    world = corridor_points(rng, 6000, x0=-2.0, length=14.0)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(odometry="visual", first_fix_gap_s=0.3))
+
+    def at(t_s, x):
+        v = seen_from(planar_pose(x, 0, 0), world)
+        return loc.update(int(t_s * 1e9), v, np.full(len(v), 0.5), generation=500)
+
+    assert at(0.0, 0.0).status == "initialised"
+    assert at(0.8, 6.0).status.startswith("initialised (the map restarted: 0.80 s")      # > 0.3 s
+    assert at(1.5, 6.5).status.startswith("initialised (the map restarted: 0.70 s")      # > 0.6 s
+    third = at(2.3, 7.0)                                                                 # ≤ 1.2 s
+    assert not third.status.startswith("initialised") and loc.map_restarts == 2
+    stamps, _ = loc.trajectory()
+    assert stamps[0] == int(1.5e9) and len(stamps) == 2      # the trajectory starts with the last map
+    wheels = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(first_fix_gap_s=0.3))
+    v = seen_from(planar_pose(0, 0, 0), world)
+    wheels.update(0, v, np.full(len(v), 0.5), planar_pose(0, 0, 0), generation=500)
+    v = seen_from(planar_pose(1.0, 0, 0), world)
+    late = wheels.update(10**9, v, np.full(len(v), 0.5), planar_pose(1.0, 0, 0), generation=500)
+    assert not late.status.startswith("initialised") and wheels.map_restarts == 0     # odometry knows the motion

@@ -117,6 +117,8 @@ class FlyLocaliser:
         self._steps_since_fix = 1.0      # ... and with the time since the last fix (see _prediction_steps)
         self.graph_failures = 0          # pose-graph solves that failed (the front end carried on)
         self.slips_undone = 0            # fixes that took the prediction without a too-fast odometry turn
+        self.map_restarts = 0            # one-keyframe maps restarted (see _first_fix_too_late)
+        self.map_loaded = False      # started from a saved map (load_map): never restarted
         self._pinned_hint = np.zeros(3, bool)      # see LocaliserConfig.tracking_recheck_pinned
         self._pinned_streak = 0
         self._last_odom: np.ndarray | None = None
@@ -391,6 +393,7 @@ class FlyLocaliser:
             self.backend._last_id = kfs[-1].id
             self.backend.optimise(kfs[-1].id)
         self._next_id = max((k.id for k in kfs), default=-1) + 1
+        self.map_loaded = bool(kfs)
         self._map_cache = self._visible_cache = None
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
@@ -553,10 +556,14 @@ class FlyLocaliser:
         if turning_fast and not self.keyframes:
             return finish(T_pred, f"odometry only: turning at {np.rad2deg(self._turn_rate):.0f}°/s "
                                   f"(> {np.rad2deg(c.max_turn_rate_radps):.0f}°/s)", False, cov_pred, may_add=False)
+        restarted = self._first_fix_too_late(stamp_ns, source)
+        if restarted:
+            self._restart_map()
+            T_pred, source = self._predict(stamp_ns, T_odom_base)
         if not self.keyframes:
             if len(points) < c.min_flies:
                 return finish(T_pred, f"odometry only: {len(points)} usable flies to start a map", False, cov_pred)
-            return finish(T_pred, "initialised", False, np.zeros((6, 6)))
+            return finish(T_pred, f"initialised{restarted}", False, np.zeros((6, 6)))
         photometric_reason = ""
         if new_pyramid is not None:
             # no motion known yet (the first frames of a visual-only run): search the lattice first
@@ -632,6 +639,36 @@ class FlyLocaliser:
             if why:
                 return finish(T_pred, f"rejected: δ registration {why}", False, cov_pred, res.delta)
         return fixed(T_map_base, planar_covariance(cov3), res.delta, links)
+
+    def _first_fix_too_late(self, stamp_ns: int, source: str) -> str:
+        """Why the map restarts from this population ('' when it does not): no motion is known yet
+        (visual-only, the map holds only its origin) and this population came more than
+        ``first_fix_gap_s`` (doubled at each restart) after the origin.
+
+        The unknown-motion search reaches ~0.25 × the flies' median depth: a live start where the
+        evolver's first frame took 0.8 s put the first fix of a car 6.9 m from its origin, at the edge
+        of that reach, and one start in six then took 4.3 m for it.  Later populations come a frame
+        apart, and the doubling lets a machine slower than the limit still start."""
+        if source != "none" or len(self.keyframes) != 1 or len(self._history) != 1 or self.map_loaded:
+            return ""
+        gap_s = (stamp_ns - self._history[0][0]) * 1e-9
+        limit = self.config.first_fix_gap_s * 2.0 ** self.map_restarts
+        if gap_s <= limit:
+            return ""
+        return f" (the map restarted: {gap_s:.2f} s after its origin, > {limit:.2f} s with the motion unknown)"
+
+    def _restart_map(self) -> None:
+        """Forget the one-keyframe map and its origin: the next update starts a map again."""
+        self.map_restarts += 1
+        self.keyframes.clear()
+        self._history.clear()
+        self._track = _Tracking()
+        self._reference = self._newest_view = None
+        self._fit_residuals.clear()
+        self._map_cache = self._visible_cache = self._pool_list = None
+        self.T_map_odom = np.eye(4)
+        if self.backend is not None:
+            self.backend = KeyframeGraph(self.config, planar=self.backend.planar, archive=self.backend.archive_config)
 
     def _renew_reference(self, T_map_base: np.ndarray, view_flies) -> None:
         """Make this population the tracking reference once the camera has left the current one's
