@@ -57,15 +57,19 @@ def one_opencv_thread() -> None:
 
 
 def run_service(name: str, parser: argparse.ArgumentParser, body: Callable[[Node, argparse.Namespace], int | None],
-                argv: list[str] | None = None) -> int:
+                argv: list[str] | None = None,
+                prepare: Callable[[argparse.Namespace], None] | None = None) -> int:
     """Parse arguments, open the service's Node and run ``body(node, args)`` until it returns.
 
     SIGINT/SIGTERM set ``node.stopping``; bodies loop ``while not node.stopping`` and return to exit
-    cleanly (files closed, liveliness token withdrawn).
+    cleanly (files closed, liveliness token withdrawn).  ``prepare(args)`` runs before the node joins
+    the bus (loading kernels): a service announces itself when it can take its inputs.
     """
     args = parser.parse_args(argv)
     retain_freed_memory()   # per-frame arrays reused, not page-faulted in again (common.allocator)
     one_opencv_thread()
     setup_logging(name, getattr(args, "log_level", None))
+    if prepare is not None:
+        prepare(args)
     with Node(name, bus_options(args)) as node:
         return int(body(node, args) or 0)

@@ -26,7 +26,7 @@ from common import messages as m
 from common import streams as S
 from common.config_args import add_config_arguments
 from common.fly import EvolverConfig
-from common.fly.core import EvolverCore, EvolverServiceConfig, FrameResult
+from common.fly.core import EvolverCore, EvolverServiceConfig, FrameResult, warm_up
 from services.base import config_or_exit, run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.evolver")
@@ -124,8 +124,16 @@ def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -
     return True
 
 
+def load_kernels(args) -> None:
+    """Before joining the bus (common.fly.core.warm_up): the first frame then pays for no kernel."""
+    try:
+        log.info("kernels loaded in %.2f s", warm_up(config_or_exit(EvolverConfig, args, only=EVOLVER_FLAGS)))
+    except Exception as e:  # noqa: BLE001 - only a head start: the first frame loads them instead
+        log.warning("loading the kernels ahead failed (%s: %s); the first frame will", type(e).__name__, e)
+
+
 def main(argv=None) -> int:
-    return run_service("evolver", build_parser(), body, argv)
+    return run_service("evolver", build_parser(), body, argv, prepare=load_kernels)
 
 
 if __name__ == "__main__":

@@ -142,11 +142,16 @@ def starting_map(run: LocaliserServiceConfig, map_path: Path | None):
     return None, False
 
 
-def load_localiser(run: LocaliserServiceConfig, map_path: Path | None):
+def load_localiser(run: LocaliserServiceConfig, config: LocaliserConfig, map_path: Path | None):
     """The slow part of a start, run beside the stand-in: import the core (numba, SciPy, GTSAM: a second
-    or more) and read the starting map.  (LocaliserCore class, map data or None, restarted)."""
-    from common.slam.core import LocaliserCore
+    or more), load its kernels (common.slam.core.warm_up) and read the starting map.  (LocaliserCore
+    class, map data or None, restarted)."""
+    from common.slam.core import LocaliserCore, warm_up
 
+    try:
+        log.info("kernels loaded in %.2f s", warm_up(config))
+    except Exception as e:  # noqa: BLE001 - only a head start: the first population loads them instead
+        log.warning("loading the kernels ahead failed (%s: %s); the first population will", type(e).__name__, e)
     return (LocaliserCore, *starting_map(run, map_path))
 
 
@@ -167,7 +172,7 @@ def body(node, args) -> int:
     map_path = Path(run.tum).parent / "map.mcap" if run.tum else None
     if not is_restart():
         set_aside_earlier_run(Path(run.tum) if run.tum else None, map_path)
-    loading: Future = ThreadPoolExecutor(1, thread_name_prefix="load").submit(load_localiser, run, map_path)
+    loading: Future = ThreadPoolExecutor(1, thread_name_prefix="load").submit(load_localiser, run, config, map_path)
     hint = latched_map_to_odom(node) if is_restart() else None
     odometry = PoseBuffer(maxlen=1000)
     stand_in, core = StandInCore(hint, odometry), None

@@ -96,6 +96,25 @@ def _same_geometry(a: StereoCalibration | None, b: StereoCalibration) -> bool:
     return a is not None and (a.width, a.height, a.fx, a.baseline) == (b.width, b.height, b.fx, b.baseline)
 
 
+def warm_up(config: EvolverConfig) -> float:
+    """Load the per-frame numba kernels before the first frame: a few generations with ``config`` (500
+    flies) on a small synthetic pair, in colour and in mono.  numba compiles them once per install
+    (common.warmup) but loads each from its cache on first use, which a live start's first frame
+    otherwise pays for: frames the camera or replay sends meanwhile are skipped, and the localiser's
+    first fix has to span them.  Returns the seconds spent."""
+    from common.fly.synthetic import textured_plane_pair
+    t0 = time.perf_counter()
+    calib, left, right, _ = textured_plane_pair()
+    small = replace(config, population=min(int(config.population), 500))
+    for pair in ((left, right), (np.ascontiguousarray(left[:, :, 0]), np.ascontiguousarray(right[:, :, 0]))):
+        evolver = FlyEvolver(calib, small, seed=0)
+        evolver.set_images(*pair)
+        evolver.step(4)
+        evolver.move_flies(np.eye(4))
+        evolver.step(1)
+    return time.perf_counter() - t0
+
+
 class EvolverCore(LatchedInputs):
     """One fly population kept on the newest frame (see the module docstring).
 

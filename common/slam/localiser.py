@@ -645,10 +645,10 @@ class FlyLocaliser:
         (visual-only, the map holds only its origin) and this population came more than
         ``first_fix_gap_s`` (doubled at each restart) after the origin.
 
-        The unknown-motion search reaches ~0.25 × the flies' median depth: a live start where the
-        evolver's first frame took 0.8 s put the first fix of a car 6.9 m from its origin, at the edge
-        of that reach, and one start in six then took 4.3 m for it.  Later populations come a frame
-        apart, and the doubling lets a machine slower than the limit still start."""
+        The unknown-motion search reaches ~0.25 × the flies' median depth (common.registration.
+        photometric.coarse_candidates): a live start whose first frame was slow put a car's first fix
+        at the edge of that reach, where it sometimes settled metres short.  Later populations come a
+        frame apart, and the doubling lets a machine slower than the limit still start."""
         if source != "none" or len(self.keyframes) != 1 or len(self._history) != 1 or self.map_loaded:
             return ""
         gap_s = (stamp_ns - self._history[0][0]) * 1e-9
