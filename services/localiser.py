@@ -194,6 +194,7 @@ def body(node, args) -> int:
     pubs = node.publisher(S.SLAM_POSE), node.publisher(S.SLAM_MAP_TO_ODOM)
     last_tum = last_map = time.monotonic()
     map_changed = False
+    restarts_seen = 0
     while not node.stopping:
         if core is None and loading.done():
             from common.slam.mapfile import MapFileError     # (loaded by now)
@@ -230,6 +231,14 @@ def body(node, args) -> int:
             map_changed |= out.estimate.keyframe_added
             if tum is not None and core.keyframes:     # the trajectory starts with the map
                 tum.append(out.pose.header.stamp_ns, out.estimate.T_map_base)
+        if core.localiser is not None and core.localiser.map_restarts > restarts_seen:
+            # the map started again (common.slam.localiser._first_fix_too_late): its first origin
+            # leaves the trajectory file and the map now, not at the next periodic rewrite
+            node.counters.add("map_restarts", core.localiser.map_restarts - restarts_seen)
+            restarts_seen = core.localiser.map_restarts
+            log.info("%s", out.estimate.status)
+            map_changed = True
+            last_tum = last_map = 0.0
         if tum is not None and time.monotonic() - last_tum > run.tum_period_s:
             with lock:
                 tum.rewrite(*core.trajectory())

@@ -57,6 +57,7 @@ after_warm_up = loaded()
 core = LocaliserCore(LocaliserConfig(odometry="visual", min_generations=1))
 core.on_calibration(m.calibration_to_msg(pops[0][0]))
 statuses = [core.on_population(pop) for _, _, pop in pops]
+assert any(s.estimate is not None and s.estimate.status == "ok" for s in statuses), statuses
 print(json.dumps({"before": before, "after_warm_up": after_warm_up, "after": loaded()}))
 """
 

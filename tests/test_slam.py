@@ -283,3 +283,9 @@ def test_a_first_fix_long_after_the_maps_origin_restarts_the_map():
     v = seen_from(planar_pose(1.0, 0, 0), world)
     late = wheels.update(10**9, v, np.full(len(v), 0.5), planar_pose(1.0, 0, 0), generation=500)
     assert not late.status.startswith("initialised") and wheels.map_restarts == 0     # odometry knows the motion
+    gappy = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(first_fix_gap_s=0.3))
+    v = seen_from(planar_pose(0, 0, 0), world)
+    gappy.update(0, v, np.full(len(v), 0.5), planar_pose(0, 0, 0), generation=500)
+    v = seen_from(planar_pose(1.0, 0, 0), world)
+    gap = gappy.update(8 * 10**8, v, np.full(len(v), 0.5), None, generation=500)      # a gap in the odometry
+    assert not gap.status.startswith("initialised") and gappy.map_restarts == 0

@@ -105,7 +105,7 @@ def warm_up(config: EvolverConfig) -> float:
     from common.fly.synthetic import textured_plane_pair
     t0 = time.perf_counter()
     calib, left, right, _ = textured_plane_pair()
-    small = replace(config, population=min(int(config.population), 500))
+    small = replace(config, population=min(int(config.population), 500), depth_min=None, depth_max=None)
     for pair in ((left, right), (np.ascontiguousarray(left[:, :, 0]), np.ascontiguousarray(right[:, :, 0]))):
         evolver = FlyEvolver(calib, small, seed=0)
         evolver.set_images(*pair)

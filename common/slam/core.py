@@ -58,7 +58,8 @@ def warm_up(config: LocaliserConfig) -> float:
                       np.full(u.shape, depth)], 1)
     fitness = np.ones(len(flies))
     grey = np.ascontiguousarray(left.mean(axis=2).astype(np.uint8))
-    localiser = FlyLocaliser(calib.T_base_camera, replace(config, odometry="visual", min_flies=10),
+    anywhere = dict(max_depth_m=None, min_height_m=-np.inf, max_height_m=np.inf)    # the plane's flies all count
+    localiser = FlyLocaliser(calib.T_base_camera, replace(config, odometry="visual", min_flies=10, **anywhere),
                              calibration=calib)
     for k, image in enumerate((grey, grey, grey, None)):
         localiser.update(k * 100_000_000, flies, fitness, generation=10**6, image=image)

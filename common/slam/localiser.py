@@ -649,8 +649,9 @@ class FlyLocaliser:
         photometric.coarse_candidates): a live start whose first frame was slow put a car's first fix
         at the edge of that reach, where it sometimes settled metres short.  Later populations come a
         frame apart, and the doubling lets a machine slower than the limit still start."""
-        if source != "none" or len(self.keyframes) != 1 or len(self._history) != 1 or self.map_loaded:
-            return ""
+        if (self.config.odometry != "visual" or source != "none" or len(self.keyframes) != 1
+                or len(self._history) != 1 or self.map_loaded):
+            return ""   # (wheels: a population without odometry is a gap in it, not an unknown motion)
         gap_s = (stamp_ns - self._history[0][0]) * 1e-9
         limit = self.config.first_fix_gap_s * 2.0 ** self.map_restarts
         if gap_s <= limit:
@@ -660,6 +661,7 @@ class FlyLocaliser:
     def _restart_map(self) -> None:
         """Forget the one-keyframe map and its origin: the next update starts a map again."""
         self.map_restarts += 1
+        self._updates_since_fix, self._steps_since_fix = 0, 1.0
         self.keyframes.clear()
         self._history.clear()
         self._track = _Tracking()
