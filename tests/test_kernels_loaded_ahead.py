@@ -84,3 +84,19 @@ def test_the_first_fixes_load_no_kernel_after_the_localisers_warm_up():
     got = run(LOCALISER)
     assert len(got["after_warm_up"]) > len(got["before"])      # it loaded some of its own
     assert not new_kernels(got), f"kernels the first fixes still had to load: {new_kernels(got)}"
+
+
+
+def test_a_cold_numba_cache_is_told_apart_so_the_evolver_does_not_compile_before_joining_the_bus(tmp_path):
+    """services/evolver.py loads its kernels before it announces itself only when that is a load: a
+    compile takes seconds, and the supervisor takes a process without a liveliness token for hung."""
+    check = ("from common.fly import fitness, operators\nfrom common.numba_cache import on_disk\n"
+             "print(on_disk([fitness._fitness_kernel_serial, operators.plan_batch]))")
+    compile_them = "from common.fly import EvolverConfig\nfrom common.fly.core import warm_up\nwarm_up(EvolverConfig())"
+    answers = []
+    for script in (check, compile_them, check):     # in an empty cache: cold; the warm-up compiles and saves
+        done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                              env=dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=str(tmp_path)))
+        assert done.returncode == 0, done.stderr
+        answers.append(done.stdout.strip())
+    assert answers == ["False", "", "True"]
