@@ -52,10 +52,10 @@ def warm_up(config: LocaliserConfig) -> float:
 
     from common.fly.synthetic import textured_plane_pair
     t0 = time.perf_counter()
-    calib, left, _, depth = textured_plane_pair()
+    disparity = 12.0
+    calib, left, _, _ = textured_plane_pair(disparity)
     v, u = np.mgrid[4:calib.height - 4:3, 4:calib.width - 4:3].reshape(2, -1).astype(float)
-    flies = np.stack([(u - calib.cx_left) * depth / calib.fx, (v - calib.cy) * depth / calib.fy,
-                      np.full(u.shape, depth)], 1)
+    flies = calib.backproject(u, v, np.full(u.shape, disparity))
     fitness = np.ones(len(flies))
     grey = np.ascontiguousarray(left.mean(axis=2).astype(np.uint8))
     anywhere = dict(max_depth_m=None, min_height_m=-np.inf, max_height_m=np.inf)    # the plane's flies all count

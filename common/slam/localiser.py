@@ -113,8 +113,6 @@ class FlyLocaliser:
         self._turned_since_fix = 0.0
         self._fast_turn_since_fix = 0.0  # signed odometry yaw (rad) turned faster than max_turn_rate_radps
         self._last_fix_stamp: int | None = None
-        self._updates_since_fix = 0      # the constant-velocity prediction's uncertainty grows with it
-        self._steps_since_fix = 1.0      # ... and with the time since the last fix (see _prediction_steps)
         self.graph_failures = 0          # pose-graph solves that failed (the front end carried on)
         self.slips_undone = 0            # fixes that took the prediction without a too-fast odometry turn
         self.map_restarts = 0            # one-keyframe maps restarted (see _first_fix_too_late)
@@ -124,12 +122,20 @@ class FlyLocaliser:
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp: int | None = None
         self._turn_rate = 0.0
+        self._next_id = 0
+        self._rng = np.random.default_rng(seed)
+        self._empty_map()
+
+    def _empty_map(self, archive=None) -> None:
+        """The map and the tracking state of a new localiser (which a map restart returns to);
+        ``archive``: the back-end's size bound (None: its default)."""
+        self._updates_since_fix = 0      # the constant-velocity prediction's uncertainty grows with it
+        self._steps_since_fix = 1.0      # ... and with the time since the last fix (see _prediction_steps)
         # The visibility count runs on every update over the whole keyframe window: the concatenated map
         # is rebuilt only when the window changed, and the count for the last pose asked is kept (the
         # local map and the coverage test of a rejected update ask about the same predicted pose).
         self._map_cache: tuple | None = None
         self._visible_cache: tuple | None = None
-
         self.keyframes: deque[Keyframe] = deque(maxlen=self.config.max_keyframes)
         self.T_map_odom = np.eye(4)
         self._track = _Tracking()
@@ -137,9 +143,8 @@ class FlyLocaliser:
         self._fit_residuals: deque[float] = deque(maxlen=20)   # residual scales of the recent photometric fixes
         self._newest_view: tuple | None = None    # (T_map_cam, view flies) of the newest registered update
                                                   # (or the first, which defines the map)
-        self._next_id = 0
-        self._rng = np.random.default_rng(seed)
-        self.backend = KeyframeGraph(self.config, planar=self.config.odometry == "wheels") if self.config.pose_graph else None
+        self.backend = (KeyframeGraph(self.config, planar=self.config.odometry == "wheels", archive=archive)
+                        if self.config.pose_graph else None)
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
@@ -661,16 +666,7 @@ class FlyLocaliser:
     def _restart_map(self) -> None:
         """Forget the one-keyframe map and its origin: the next update starts a map again."""
         self.map_restarts += 1
-        self._updates_since_fix, self._steps_since_fix = 0, 1.0
-        self.keyframes.clear()
-        self._history.clear()
-        self._track = _Tracking()
-        self._reference = self._newest_view = None
-        self._fit_residuals.clear()
-        self._map_cache = self._visible_cache = self._pool_list = None
-        self.T_map_odom = np.eye(4)
-        if self.backend is not None:
-            self.backend = KeyframeGraph(self.config, planar=self.backend.planar, archive=self.backend.archive_config)
+        self._empty_map(self.backend.archive_config if self.backend is not None else None)
 
     def _renew_reference(self, T_map_base: np.ndarray, view_flies) -> None:
         """Make this population the tracking reference once the camera has left the current one's
