@@ -5,8 +5,10 @@ Inputs, through OpenCV VideoCapture:
 - one side-by-side device or file (left half = left camera): ``--sbs 0`` / ``--sbs pair.avi``.
 A digit string is a device index, ``/dev/...`` a device path, anything else a video file.
 
-``--calibration`` names the OpenCV stereo YAML (format in common/stereo_rectify.py; repeat the option
-to merge OpenCV's intrinsics.yml + extrinsics.yml). Rectification maps are computed once (alpha=0).
+``--calibration`` names the rig's calibration: OpenCV stereo YAML (format in common/stereo_rectify.py;
+repeat the option to merge OpenCV's intrinsics.yml + extrinsics.yml), a Kalibr camchain.yaml, or the
+left and right ROS camera_info YAML files (common/calibration_files.py). Rectification maps are
+computed once.
 Publishes ``<robot>/stereo/frame`` (rectified, ``--encoding`` rgb8 | mono8 | jpeg | png) stamped with the
 capture wall-clock time (a video file: its frame's time in the video from the start of the run, late
 frames skipped as a camera would have moved on), and ``<robot>/stereo/calibration`` (latched, re-published every
@@ -27,7 +29,8 @@ from common import streams as S
 from common.camera import CalibrationError, StereoCalibration
 from common.images import COMPRESSED_ENCODINGS, RAW_ENCODINGS, make_frame
 from common.messages import StereoFrame, calibration_to_msg
-from common.stereo_rectify import StereoRectifier, load_calibration, split_side_by_side
+from common.calibration_files import CalibratedRig, load_rig
+from common.stereo_rectify import StereoRectifier, split_side_by_side
 
 log = logging.getLogger("flyslam.camera")
 
@@ -153,11 +156,12 @@ class StereoCapture:
 class StereoPipeline:
     """Raw BGR pairs → rectified StereoFrames in the requested encoding (no bus: testable as is)."""
 
-    def __init__(self, calib: StereoCalibration, encoding: str = "rgb8", quality: int = 90):
+    def __init__(self, rig: CalibratedRig | StereoCalibration, encoding: str = "rgb8", quality: int = 90):
         if encoding not in RAW_ENCODINGS + COMPRESSED_ENCODINGS:
             raise CameraError(f"unknown encoding {encoding!r} (use one of {', '.join(RAW_ENCODINGS + COMPRESSED_ENCODINGS)})")
-        self.calib = calib
-        self.rectifier = StereoRectifier(calib)
+        if isinstance(rig, StereoCalibration):
+            rig = CalibratedRig(rig, StereoRectifier(rig).rectify, "calibration")
+        self.calib, self._rectify = rig.calibration, rig.rectify
         self.encoding, self.quality = encoding, quality
 
     def frame(self, left_bgr: np.ndarray, right_bgr: np.ndarray, seq: int, stamp_ns: int) -> StereoFrame:
@@ -165,7 +169,7 @@ class StereoPipeline:
         left, right = (cv2.cvtColor(img, code) if img.ndim == 3 else img for img in (left_bgr, right_bgr))
         if self.encoding != "mono8" and left.ndim == 2:
             left, right = cv2.cvtColor(left, cv2.COLOR_GRAY2RGB), cv2.cvtColor(right, cv2.COLOR_GRAY2RGB)
-        left, right = self.rectifier.rectify(left, right)
+        left, right = self._rectify(left, right)
         return make_frame(left, right, seq=seq, stamp_ns=stamp_ns, encoding=self.encoding, quality=self.quality)
 
 
@@ -180,9 +184,10 @@ def build_parser():
     src.add_argument("--right", help="right camera: device index, /dev/videoN, or video file")
     src.add_argument("--sbs", help="one side-by-side device or video file (left half = left camera)")
     src.add_argument("--calibration", "-c", action="append", required=True,
-                     help="stereo calibration YAML (repeatable: files are merged in order)")
+                     help="OpenCV stereo YAML (repeatable), Kalibr camchain.yaml, or ROS camera_info left.yaml "
+                          "then right.yaml")
     src.add_argument("--units-m", type=float, default=None,
-                     help="metres per unit of T in the YAML (overrides its units_m node)")
+                     help="metres per unit of T in an OpenCV YAML (overrides its units_m node)")
     src.add_argument("--fps", type=float, default=None,
                      help="frame rate to publish at; unset: the file's own rate, or as fast as the device delivers")
     src.add_argument("--loop", action="store_true", help="rewind video files at their end")
@@ -255,17 +260,20 @@ def main(argv: list[str] | None = None) -> int:
     one_opencv_thread()
     setup_logging("camera")
     try:
-        calib = load_calibration(args.calibration, args.units_m)
-        pipeline = StereoPipeline(calib, args.encoding, args.quality)
+        calibration_files = [c for c in args.calibration if c]
+        rig = load_rig(calibration_files, args.units_m)
+        calib = rig.calibration
+        pipeline = StereoPipeline(rig, args.encoding, args.quality)
         # an empty value is no value: a launch file passes every source option, the unused ones empty
         capture = StereoCapture(calib, args.left or None, args.right or None, args.sbs or None, loop=args.loop,
-                                calibration_name=f"calibration {', '.join(args.calibration)}", fps=args.fps)
+                                calibration_name=f"calibration {', '.join(calibration_files)}", fps=args.fps)
     except (CalibrationError, CameraError) as e:
         print(f"flyslam camera: {e}", file=sys.stderr)
         return 2
     fps = args.fps if args.fps else (capture.fps if capture.is_file and capture.fps > 0 else None)
-    log.info("%s → %dx%d rectified, fx %.1f px, baseline %.1f mm, %s", ", ".join(capture.specs), calib.width,
-             calib.height, calib.fx, calib.baseline * 1000, f"{fps:g} fps" if fps else "device rate")
+    log.info("%s → %dx%d rectified, fx %.1f px, baseline %.1f mm, %s; calibration: %s", ", ".join(capture.specs),
+             calib.width, calib.height, calib.fx, calib.baseline * 1000, f"{fps:g} fps" if fps else "device rate",
+             rig.source)
     try:
         with Node("camera", bus_options(args)) as node:
             return publish_loop(node, capture, pipeline, fps, args.calibration_period)

@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from common.geometry import rot_x, rot_y
+from common.calibration_files import load_rig
+from common.geometry import make_transform, rot_x, rot_y
 from common.images import frame_images
 from common.messages import StereoFrame, calibration_from_msg, calibration_to_msg, decode, encode
 from common.stereo_rectify import RawStereoRig, StereoRectifier, load_calibration, rectify_rig
@@ -163,6 +164,75 @@ def test_missing_file_and_unknown_units_are_clear_errors(videos, tmp_path, capsy
     # with --units-m the same file is accepted (T was written in centimetres)
     calib = load_calibration(tmp_path / "squares.yaml", units_m=0.01)
     assert calib.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
+
+
+def _numbers(a) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in np.ravel(a)) + "]"
+
+
+def _write_kalibr(path, rig: RawStereoRig):
+    """The rig as Kalibr writes it: radtan k1 k2 p1 p2, cam0 → cam1 as T_cn_cnm1 (x_cam1 = T·x_cam0)."""
+    T = make_transform(rig.R, rig.T.ravel())
+    cams = []
+    for name, K, D in (("cam0", rig.K1, rig.D1), ("cam1", rig.K2, rig.D2)):
+        extra = "".join(f"  - {_numbers(row)}\n" for row in T) if name == "cam1" else ""
+        cams.append(f"{name}:\n" + (f"  T_cn_cnm1:\n{extra}" if extra else "") +
+                    f"  camera_model: pinhole\n  distortion_coeffs: {_numbers(D[:4])}\n"
+                    f"  distortion_model: radtan\n  intrinsics: {_numbers([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])}\n"
+                    f"  resolution: [{W}, {H}]\n  rostopic: /{name}/image_raw\n")
+    path.write_text("".join(cams))
+    return path
+
+
+def _write_camera_info(d, rig: RawStereoRig):
+    """The rig as ROS's camera_calibration writes it: left.yaml and right.yaml (K, D raw; R, P rectified)."""
+    rect = rectify_rig(rig)
+    paths = []
+    for side, K, D, R, P in (("left", rig.K1, rig.D1, rect.R_left, rect.P_left),
+                             ("right", rig.K2, rig.D2, rect.R_right, rect.P_right)):
+        path = d / f"{side}.yaml"
+        path.write_text(
+            f"image_width: {W}\nimage_height: {H}\ncamera_name: {side}\n"
+            f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: {_numbers(K)}\n"
+            f"distortion_model: plumb_bob\n"
+            f"distortion_coefficients:\n  rows: 1\n  cols: {np.size(D)}\n  data: {_numbers(D)}\n"
+            f"rectification_matrix:\n  rows: 3\n  cols: 3\n  data: {_numbers(R)}\n"
+            f"projection_matrix:\n  rows: 3\n  cols: 4\n  data: {_numbers(P)}\n")
+        paths.append(path)
+    return paths
+
+
+@pytest.mark.parametrize("fmt", ["kalibr", "camera_info"])
+def test_a_kalibr_camchain_or_ros_camera_info_files_drive_the_camera_as_well(videos, tmp_path, fmt):
+    # the same raw rig, calibrated with Kalibr or with ROS's camera_calibration instead of flyslam's
+    d, rig, truth = videos
+    files = [_write_kalibr(tmp_path / "camchain.yaml", rig)] if fmt == "kalibr" else _write_camera_info(tmp_path, rig)
+    loaded = load_rig(files)
+    assert ("Kalibr camchain" if fmt == "kalibr" else "ROS camera_info") in loaded.source
+    assert loaded.calibration.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
+    capture = camera.StereoCapture(loaded.calibration, left=str(d / "left.avi"), right=str(d / "right.avi"))
+    pipeline = camera.StereoPipeline(loaded, "rgb8")
+    frames = []
+    while (pair := capture.read()) is not None:
+        frames.append(pipeline.frame(*pair, seq=len(frames) + 1, stamp_ns=0))
+    capture.close()
+    assert len(frames) == N_FRAMES
+    for msg, (tl, tr) in zip(frames, truth):
+        left, right = frame_images(msg)
+        assert _interior_error(left, tl) < 6 and _interior_error(right, tr) < 6
+
+
+def test_calibration_files_of_another_format_give_one_line_errors(videos, tmp_path, capsys):
+    d, rig, _ = videos
+    left_yaml, _ = _write_camera_info(tmp_path, rig)
+    source = ["--left", str(d / "left.avi"), "--right", str(d / "right.avi")]
+    code, err = _run_main(capsys, [*source, "-c", str(left_yaml)])      # the right camera's file forgotten
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert str(left_yaml) in err and "two files" in err
+    camchain = _write_kalibr(tmp_path / "camchain.yaml", rig)
+    camchain.write_text(camchain.read_text().replace("resolution", "resolutoin"))
+    code, err = _run_main(capsys, [*source, "-c", str(camchain)])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(camchain) in err and "resolution" in err
 
 
 def test_swapped_cameras_are_refused(videos, tmp_path):

@@ -209,32 +209,32 @@ def _info_arrays(msg) -> dict:
 
 
 def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right_topic: str,
-                                 rectified: bool) -> tuple[StereoCalibration, object, np.ndarray, str]:
+                                 rectified: bool, source: str = "ROS bag") -> tuple[StereoCalibration, object, np.ndarray, str]:
     """(calibration, rectify(left, right) callable, raw-to-rectified rotation of the left camera, how the
-    images are treated, in words)."""
+    images are treated, in words).  ``source`` begins every error message (the topics, or files, follow)."""
     for info, topic in ((left, left_topic), (right, right_topic)):
         if not np.any(info["P"]):
-            raise DatasetLayoutError(f"ROS bag: {topic}: CameraInfo has no projection P (camera not calibrated)")
+            raise DatasetLayoutError(f"{source}: {topic}: CameraInfo has no projection P (camera not calibrated)")
         if max(info["binning"]) > 1:
-            raise DatasetLayoutError(f"ROS bag: {topic}: binned images (binning {info['binning']}) are not supported")
+            raise DatasetLayoutError(f"{source}: {topic}: binned images (binning {info['binning']}) are not supported")
         if not rectified and info["model"] not in PINHOLE_MODELS + ("equidistant",):
-            raise DatasetLayoutError(f"ROS bag: {topic}: distortion model {info['model']!r} is not supported "
+            raise DatasetLayoutError(f"{source}: {topic}: distortion model {info['model']!r} is not supported "
                                      "(plumb_bob, rational_polynomial, equidistant)")
         if not np.any(info["R"]):
             info["R"] = np.eye(3)
     Pl, Pr = left["P"], right["P"]
     if left["size"] != right["size"]:
-        raise DatasetLayoutError(f"ROS bag: {left_topic} is {left['size']} but {right_topic} is {right['size']}")
+        raise DatasetLayoutError(f"{source}: {left_topic} is {left['size']} but {right_topic} is {right['size']}")
     if not np.allclose([Pl[0, 0], Pl[1, 1], Pl[1, 2]], [Pr[0, 0], Pr[1, 1], Pr[1, 2]], rtol=1e-6, atol=1e-6):
-        raise DatasetLayoutError(f"ROS bag: {left_topic} and {right_topic}: the CameraInfo projections P differ in "
+        raise DatasetLayoutError(f"{source}: {left_topic} and {right_topic}: the CameraInfo projections P differ in "
                                  "fx, fy or cy, so they are not a rectified stereo pair (use --camchain)")
     fx = Pl[0, 0]
     baseline = (Pl[0, 3] - Pr[0, 3]) / fx
     if baseline == 0:
-        raise DatasetLayoutError(f"ROS bag: {right_topic}: CameraInfo P has no baseline (P[0,3] = 0): the cameras "
+        raise DatasetLayoutError(f"{source}: {right_topic}: CameraInfo P has no baseline (P[0,3] = 0): the cameras "
                                  "were not calibrated as a stereo pair (use --camchain)")
     if baseline < 0:
-        raise DatasetLayoutError(f"ROS bag: {right_topic} is to the LEFT of {left_topic} (baseline {baseline:.3f} m "
+        raise DatasetLayoutError(f"{source}: {right_topic} is to the LEFT of {left_topic} (baseline {baseline:.3f} m "
                                  "from P); swap --left and --right")
     fisheye = not rectified and left["model"] == "equidistant"
     keep_raw = not rectified and not fisheye
@@ -243,12 +243,12 @@ def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right
         calib = StereoCalibration(
             width=left["size"][0], height=left["size"][1], fx=float(fx), fy=float(Pl[1, 1]),
             cx_left=float(Pl[0, 2]), cx_right=float(Pr[0, 2]), cy=float(Pl[1, 2]), baseline=float(baseline),
-            K_left=raw(left, "K", Pl[:, :3].copy()), D_left=_opencv_distortion(raw(left, "D", np.zeros(5)), left_topic),
+            K_left=raw(left, "K", Pl[:, :3].copy()), D_left=_opencv_distortion(raw(left, "D", np.zeros(5)), f"{source}: {left_topic}"),
             R_left=raw(left, "R", np.eye(3)), K_right=raw(right, "K", Pr[:, :3].copy()),
-            D_right=_opencv_distortion(raw(right, "D", np.zeros(5)), right_topic), R_right=raw(right, "R", np.eye(3)),
+            D_right=_opencv_distortion(raw(right, "D", np.zeros(5)), f"{source}: {right_topic}"), R_right=raw(right, "R", np.eye(3)),
             T_base_camera=T_BASE_CAMERA.copy())
     except CalibrationError as e:
-        raise DatasetLayoutError(f"ROS bag: {left_topic}/{right_topic} CameraInfo: {e}") from None
+        raise DatasetLayoutError(f"{source}: {left_topic}/{right_topic} CameraInfo: {e}") from None
     if fisheye:
         maps = tuple(lens_maps("equidistant", i["K"], i["D"][:4], i["R"], i["P"], i["size"]) for i in (left, right))
         rig = RectifiedRig(calib, maps, left["R"], left["size"], "equidistant")
@@ -259,12 +259,12 @@ def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right
     return calib, rectifier.rectify, (left["R"] if keep_raw else np.eye(3)), how
 
 
-def _opencv_distortion(D: np.ndarray, topic: str) -> np.ndarray:
+def _opencv_distortion(D: np.ndarray, where: str) -> np.ndarray:
     D = np.asarray(D, np.float64).ravel()
     if D.size == 0 or not np.any(D):
         return np.zeros(5)
     if D.size not in (4, 5, 8, 12, 14):
-        raise DatasetLayoutError(f"ROS bag: {topic}: CameraInfo D has {D.size} coefficients (4, 5, 8, 12 or 14)")
+        raise DatasetLayoutError(f"{where}: CameraInfo D has {D.size} coefficients (4, 5, 8, 12 or 14)")
     return D
 
 
