@@ -22,6 +22,10 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
                                     # token seen; it starts at full priority so that a loaded machine
                                     # cannot starve its start-up past liveliness_timeout_s): services
                                     # off the critical path (viewer bridge, recorder) yield the CPU
+    start_delay_s = 0               # wait this long after starting it before starting the next
+    wait_for_ready = false          # start it only once every service before it is up (its liveliness
+                                    # token seen; at most their liveliness_timeout_s): a replay or a video
+                                    # must not play to an evolver still loading its kernels
 
 ``{out}``, ``{root}`` and ``{recordings}`` are substituted in args, and so are the launch file's own
 ``[vars]`` (defaults) as overridden by ``--var NAME=VALUE`` on the command line. Services stop in the reverse of start
@@ -87,6 +91,7 @@ class ServiceSpec:
     liveliness_timeout_s: float = 20.0
     stop_timeout_s: float = 10.0
     start_delay_s: float = 0.0
+    wait_for_ready: bool = False
     nice: int = 0
 
 
@@ -110,6 +115,7 @@ SERVICE_FIELDS = {
     "liveliness_timeout_s": ("seconds", "a number of seconds ≥ 0 (0: not checked)"),
     "stop_timeout_s": ("seconds", "a number of seconds ≥ 0"),
     "start_delay_s": ("seconds", "a number of seconds ≥ 0"), "nice": ("nice", "an integer in 0..19"),
+    "wait_for_ready": ("bool", "true or false"),
 }
 RUN_FIELDS = {
     "duration_s": ("seconds", "a number of seconds ≥ 0 (0: until stopped)"), "robot": ("str", "a string"),
@@ -433,6 +439,24 @@ class Supervisor:
         (self.out / "run_config.json").write_text(json.dumps(config, indent=2))
         self.write_record()
 
+    def _wait_until_up(self, started: list[Child], name: str) -> None:
+        """Block until every running service of ``started`` has its liveliness token, at most the longest
+        of their liveliness timeouts (past it the watch restarts them as hung anyway), or a stop."""
+        deadline = time.monotonic() + max((c.spec.liveliness_timeout_s for c in started), default=0.0)
+        t0 = time.monotonic()
+        while not self._stop.is_set():
+            with self._lock:
+                waiting = [c.spec.name for c in started if not c.alive_token
+                           and c.proc is not None and c.proc.poll() is None]
+            if not waiting:
+                log.info("starting %s: the services before it are up after %.1f s", name, time.monotonic() - t0)
+                return
+            if time.monotonic() >= deadline:
+                log.warning("starting %s although %s %s not up after %.0f s", name, ", ".join(waiting),
+                            "is" if len(waiting) == 1 else "are", time.monotonic() - t0)
+                return
+            self._stop.wait(0.05)
+
     # ------------------------------------------------------------------------------- bus watch
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -490,9 +514,11 @@ class Supervisor:
         self.state = "running"
         try:
             t_start = time.monotonic()
-            for c in self.children:
+            for i, c in enumerate(self.children):
                 if self._stop.is_set():
                     break
+                if c.spec.wait_for_ready:
+                    self._wait_until_up(self.children[:i], c.spec.name)
                 log.info("starting %s", c.spec.name)
                 c.watchdog = self.watchdog
                 c.start(env)

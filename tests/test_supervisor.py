@@ -220,6 +220,35 @@ def test_sigkilled_supervisor_leaves_a_record_and_no_process(tmp_path, zenoh_por
     assert json.loads((run / "summary.json").read_text())["out"] == str(run)
 
 
+LATE = """
+[[service]]
+name = "{name}"
+module = "tests.late_service"
+args = ["--name", "{name}", "--delay", "{delay}"]
+restart = "never"
+wait_for_ready = {wait}
+"""
+
+
+def test_a_service_waiting_for_ready_starts_once_the_others_have_joined_the_bus(tmp_path, zenoh_port):
+    """A replay or a video started before the evolver has loaded its kernels plays its first seconds to
+    nobody; with wait_for_ready the source starts only once every service before it is up."""
+    run = tmp_path / "run"
+    launch = '[run]\nduration_s = 12\n' + LATE.format(name="slow", delay=2.5, wait="false") + \
+        LATE.format(name="quick", delay=0.0, wait="false") + LATE.format(name="source", delay=0.0, wait="true")
+    sup = start_supervisor(tmp_path, zenoh_port, launch)
+    try:
+        assert wait_until(lambda: (run / "source.up").exists(), 30), sup.stdout.read() if sup.poll() is not None else ""
+    finally:
+        sup.send_signal(signal.SIGTERM)
+        out, _ = sup.communicate(timeout=30)
+    times = {f.name: float(f.read_text()) for f in run.glob("*.started")} | \
+        {f.name: float(f.read_text()) for f in run.glob("*.up")}
+    assert times["quick.started"] - times["slow.started"] < 1.0        # no wait: started one after the other
+    assert times["source.started"] >= times["slow.up"], out             # the source waited for the slow one
+    assert "starting source: the services before it are up" in out
+
+
 if __name__ == "__main__":
     import time
     grandchild = subprocess.Popen(["sleep", "600"])
