@@ -1,9 +1,12 @@
-"""Real stereo camera (or stereo video files) as a live source: rectified frames and the calibration.
+"""Real stereo camera (or stereo video files or images) as a live source: rectified frames and the calibration.
 
 Inputs, through OpenCV VideoCapture:
 - two devices or two video files: ``--left 0 --right 1`` / ``--left l.avi --right r.avi``;
-- one side-by-side device or file (left half = left camera): ``--sbs 0`` / ``--sbs pair.avi``.
-A digit string is a device index, ``/dev/...`` a device path, anything else a video file.
+- one side-by-side device or file (left half = left camera): ``--sbs 0`` / ``--sbs pair.avi``;
+- two image sequences: ``--left 'cap/left_*.png' --right 'cap/right_*.png' --fps 10`` (a glob pattern or
+  a folder each, paired in natural order: common/image_sequence.py), played like video files.
+A digit string is a device index, ``/dev/...`` a device path, a glob pattern or a folder an image
+sequence, anything else a video file.
 
 ``--calibration`` names the rig's calibration: OpenCV stereo YAML (format in common/stereo_rectify.py;
 repeat the option to merge OpenCV's intrinsics.yml + extrinsics.yml), a Kalibr camchain.yaml, or the
@@ -30,6 +33,7 @@ from common.camera import CalibrationError, StereoCalibration
 from common.images import COMPRESSED_ENCODINGS, RAW_ENCODINGS, make_frame
 from common.messages import StereoFrame, calibration_to_msg
 from common.calibration_files import CalibratedRig, load_rig
+from common.image_sequence import IMAGE_SUFFIXES, ImageSequence, ImageSequenceError, is_image_sequence
 from common.stereo_rectify import StereoRectifier, split_side_by_side
 
 log = logging.getLogger("flyslam.camera")
@@ -47,13 +51,21 @@ def _quiet_opencv():
 
 
 def describe(spec: str) -> str:
-    return f"camera device {spec}" if spec.isdigit() or spec.startswith("/dev/") else f"video file {spec}"
+    if spec.isdigit() or spec.startswith("/dev/"):
+        return f"camera device {spec}"
+    return f"image sequence {spec}" if is_image_sequence(spec) else f"video file {spec}"
 
 
-def open_capture(spec: str, size: tuple[int, int] | None = None, fps: float | None = None) -> cv2.VideoCapture:
-    """VideoCapture of a device index / device path / video file; devices are asked for ``size`` and
-    ``fps`` and for a one-frame buffer (a paced reader then gets fresh frames, not queued ones)."""
+def open_capture(spec: str, size: tuple[int, int] | None = None, fps: float | None = None):
+    """VideoCapture of a device index / device path / video file, or an ImageSequence (a glob pattern or a
+    folder of images); devices are asked for ``size`` and ``fps`` and for a one-frame buffer (a paced
+    reader then gets fresh frames, not queued ones)."""
     is_device = spec.isdigit() or spec.startswith("/dev/")
+    if not is_device and is_image_sequence(spec):
+        sequence = ImageSequence(spec)
+        if not sequence.isOpened():
+            raise CameraError(f"{describe(spec)}: no image files ({', '.join(s[1:] for s in IMAGE_SUFFIXES)})")
+        return sequence
     if not is_device and not Path(spec).is_file():
         raise CameraError(f"{describe(spec)} not found")
     _quiet_opencv()
@@ -74,7 +86,8 @@ class StereoCapture:
     """Raw (unrectified) BGR stereo pairs from two captures or one side-by-side capture.
 
     The first pair is read on opening, to check the image size against ``calib`` before anything is
-    published. :meth:`read` returns None at the end of the files (or rewinds with ``loop``).
+    published. :meth:`read` returns None at the end of the files (or rewinds with ``loop``). Two image
+    sequences pair their images in order, so they must hold as many.
     """
 
     def __init__(self, calib: StereoCalibration, left: str | None = None, right: str | None = None,
@@ -85,12 +98,17 @@ class StereoCapture:
         self.specs = [sbs] if sbs is not None else [left, right]
         self.side_by_side = sbs is not None
         self.is_file = not any(s.isdigit() or s.startswith("/dev/") for s in self.specs)
+        self.is_sequence = any(is_image_sequence(s) for s in self.specs if self.is_file)
         self.loop = loop
         w, h = calib.width, calib.height
         want = (2 * w, h) if self.side_by_side else (w, h)
         self.caps = []
         try:
             self.caps = [open_capture(s, want, fps) for s in self.specs]
+            counts = [len(c.files) for c in self.caps if isinstance(c, ImageSequence)]
+            if len(counts) == 2 and counts[0] != counts[1]:
+                raise CameraError(f"{describe(self.specs[0])} holds {counts[0]} images but {describe(self.specs[1])} "
+                                  f"{counts[1]}: the pairs would not match")
             self.fps = self.caps[0].get(cv2.CAP_PROP_FPS) or 0.0
             self._first = self._grab()
             if self._first is None:
@@ -111,7 +129,10 @@ class StereoCapture:
             return None
         imgs = []
         for c in self.caps:
-            ok, img = c.retrieve()
+            try:
+                ok, img = c.retrieve()
+            except ImageSequenceError as e:
+                raise CameraError(str(e)) from None
             if not ok or img is None:
                 return None
             imgs.append(img)
@@ -176,20 +197,25 @@ class StereoPipeline:
 # ------------------------------------------------------------------------------------------ process
 
 
+def _optional_float(text: str) -> float | None:
+    """A number, or None for an empty value (a launch file passes its unset variables empty)."""
+    return float(text) if text.strip() else None
+
+
 def build_parser():
     from services.base import service_parser
     p = service_parser("camera", __doc__.splitlines()[0])
     src = p.add_argument_group("source")
-    src.add_argument("--left", help="left camera: device index, /dev/videoN, or video file")
-    src.add_argument("--right", help="right camera: device index, /dev/videoN, or video file")
+    src.add_argument("--left", help="left camera: device index, /dev/videoN, video file, or images ('l/*.png', a folder)")
+    src.add_argument("--right", help="right camera: device index, /dev/videoN, video file, or images ('r/*.png', a folder)")
     src.add_argument("--sbs", help="one side-by-side device or video file (left half = left camera)")
     src.add_argument("--calibration", "-c", action="append", required=True,
                      help="OpenCV stereo YAML (repeatable), Kalibr camchain.yaml, or ROS camera_info left.yaml "
                           "then right.yaml")
     src.add_argument("--units-m", type=float, default=None,
                      help="metres per unit of T in an OpenCV YAML (overrides its units_m node)")
-    src.add_argument("--fps", type=float, default=None,
-                     help="frame rate to publish at; unset: the file's own rate, or as fast as the device delivers")
+    src.add_argument("--fps", type=_optional_float, default=None,
+                     help="frame rate to publish at (needed for images); unset: a video's own rate, a device's pace")
     src.add_argument("--loop", action="store_true", help="rewind video files at their end")
     src.add_argument("--encoding", default="rgb8", choices=RAW_ENCODINGS + COMPRESSED_ENCODINGS)
     src.add_argument("--quality", type=int, default=90, help="JPEG quality")
@@ -267,6 +293,10 @@ def main(argv: list[str] | None = None) -> int:
         # an empty value is no value: a launch file passes every source option, the unused ones empty
         capture = StereoCapture(calib, args.left or None, args.right or None, args.sbs or None, loop=args.loop,
                                 calibration_name=f"calibration {', '.join(calibration_files)}", fps=args.fps)
+        if capture.is_sequence and not args.fps:
+            capture.close()
+            raise CameraError(f"{', '.join(map(describe, capture.specs))}: images have no frame rate of their own; "
+                              "give --fps (the rate they were taken at)")
     except (CalibrationError, CameraError) as e:
         print(f"flyslam camera: {e}", file=sys.stderr)
         return 2

@@ -235,6 +235,60 @@ def test_calibration_files_of_another_format_give_one_line_errors(videos, tmp_pa
     assert code == 2 and len(err.strip().splitlines()) == 1 and str(camchain) in err and "resolution" in err
 
 
+def _write_images(folder, frames_rgb, names):
+    folder.mkdir()
+    for name, f in zip(names, frames_rgb):
+        assert cv2.imwrite(str(folder / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def image_folders(videos):
+    """The videos' raw frames as PNG files, numbered unpadded from 8 (8 ... 12: natural order matters)."""
+    d, _, _ = videos
+    left, right = (cv2.VideoCapture(str(d / f"{side}.avi")) for side in ("left", "right"))
+    frames = [(cv2.cvtColor(left.read()[1], cv2.COLOR_BGR2RGB), cv2.cvtColor(right.read()[1], cv2.COLOR_BGR2RGB))
+              for _ in range(N_FRAMES)]
+    names = [f"{i}.png" for i in range(8, 8 + N_FRAMES)]
+    return (_write_images(d / "left_images", [f[0] for f in frames], [f"left_{n}" for n in names]),
+            _write_images(d / "right_images", [f[1] for f in frames], names))
+
+
+def test_image_folders_play_as_a_camera_in_their_natural_order(videos, image_folders):
+    d, _, truth = videos
+    left_dir, right_dir = image_folders
+    calib = load_calibration(d / "stereo.yaml")
+    # a glob pattern for one side, a folder for the other
+    capture = camera.StereoCapture(calib, left=str(left_dir / "left_*.png"), right=str(right_dir))
+    assert capture.is_file and capture.is_sequence and capture.fps == 0
+    pipeline = camera.StereoPipeline(calib, "rgb8")
+    frames = []
+    while (pair := capture.read()) is not None:
+        frames.append(pipeline.frame(*pair, seq=len(frames) + 1, stamp_ns=0))
+    capture.close()
+    assert len(frames) == N_FRAMES
+    for msg, (tl, tr) in zip(frames, truth):       # 8, 9, 10, 11, 12: not 10, 11, 12, 8, 9
+        left, right = frame_images(msg)
+        assert _interior_error(left, tl) < 6 and _interior_error(right, tr) < 6
+
+
+def test_image_folders_need_a_rate_and_matching_counts(videos, image_folders, tmp_path, capsys):
+    d, _, _ = videos
+    left_dir, right_dir = image_folders
+    calib = ["-c", str(d / "stereo.yaml")]
+    code, err = _run_main(capsys, ["--left", str(left_dir), "--right", str(right_dir), *calib])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--fps" in err and str(left_dir) in err
+    fewer = tmp_path / "fewer"
+    fewer.mkdir()
+    for f in sorted(right_dir.iterdir())[:-1]:
+        (fewer / f.name).write_bytes(f.read_bytes())
+    code, err = _run_main(capsys, ["--left", str(left_dir), "--right", str(fewer), "--fps", "10", *calib])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "5 images" in err and "4" in err
+    code, err = _run_main(capsys, ["--left", str(tmp_path / "none_*.png"), "--right", str(right_dir), "--fps", "10",
+                                   *calib])
+    assert code == 2 and "no image files" in err and "Traceback" not in err
+
+
 def test_swapped_cameras_are_refused(videos, tmp_path):
     d, rig, _ = videos
     swapped = RawStereoRig(W, H, rig.K2, rig.D2, rig.K1, rig.D1, rig.R.T, -rig.R.T @ rig.T)
