@@ -6,8 +6,9 @@
   stereo_calib sample): :mod:`common.stereo_rectify`;
 - a Kalibr ``camchain.yaml`` (cam0 the left camera, cam1 the right; radtan, or equidistant fisheye
   lenses): :mod:`common.importers.kalibr`;
-- two ROS ``camera_info`` YAML files, left then right (what ROS's camera_calibration writes, and what
-  a stereo camera's ROS driver publishes): read as a bag's CameraInfo is
+- two ROS ``camera_info`` YAML files, left then right: what ROS's camera_calibration writes, or one
+  echoed CameraInfo message each (``ros2 topic echo --once /left/camera_info > left.yaml``: what a
+  stereo camera's driver publishes), read as a bag's CameraInfo is
   (:func:`common.importers.rosbag.calibration_from_camera_info`).
 
 The format is told from the first file's content, never from its name. With a camchain or camera_info
@@ -24,14 +25,15 @@ from typing import Callable
 import numpy as np
 
 from common.camera import CalibrationError, StereoCalibration
-from common.importers.base import DatasetLayoutError
+from common.importers.base import DatasetLayoutError, load_yaml, numbers
 from common.importers.kalibr import load_camchain
 from common.importers.rosbag import calibration_from_camera_info
 from common.stereo_rectify import StereoRectifier, load_calibration
 
 FORMATS = ("opencv", "kalibr", "camera_info")
 _KALIBR = re.compile(r"^cam\d+\s*:", re.MULTILINE)
-_CAMERA_INFO_KEYS = ("camera_matrix", "projection_matrix")
+# top-level keys of camera_calibration's file (camera_matrix, ...) or of an echoed CameraInfo message
+_CAMERA_INFO = re.compile(r"^(camera_matrix|projection_matrix|distortion_model)\s*:", re.MULTILINE)
 
 # calibration_from_camera_info speaks to `flyslam import rosbag`'s flags; here the files are the flags
 _CAMERA_INFO_REMEDIES = {"swap --left and --right": "give the left camera's file first",
@@ -55,7 +57,7 @@ def calibration_format(path) -> str:
         text = Path(path).read_text(errors="replace")
     except OSError:
         return "opencv"
-    if all(re.search(rf"^{key}\s*:", text, re.MULTILINE) for key in _CAMERA_INFO_KEYS):
+    if _CAMERA_INFO.search(text):
         return "camera_info"
     if _KALIBR.search(text) and "intrinsics" in text:
         return "kalibr"
@@ -95,40 +97,35 @@ def load_rig(paths, units_m: float | None = None) -> CalibratedRig:
 
 
 def read_camera_info_yaml(path) -> dict:
-    """A ROS camera_info YAML file as the arrays CameraInfo holds: K, D, R, P, size, model, binning."""
-    from ruamel.yaml import YAML, YAMLError  # rosbags' own YAML reader
-
+    """A camera_info YAML file as the arrays CameraInfo holds (K, D, R, P, size, model, binning): the
+    file camera_calibration writes (camera_matrix: {rows, cols, data}, ...) or a ``ros2 topic echo`` /
+    ``rostopic echo`` dump of one message (k / K, d / D, r / R, p / P, width, height)."""
     path = Path(path)
-    try:
-        doc = YAML(typ="safe", pure=True).load(path.read_text())
-    except OSError as e:
-        raise CalibrationError(f"{path}: cannot read ({e.strerror or e})") from None
-    except (YAMLError, UnicodeDecodeError) as e:
-        raise CalibrationError(f"{path} is not readable YAML ({str(e).splitlines()[0]})") from None
+    doc = load_yaml(path, "camera_info")
     if not isinstance(doc, dict):
-        raise CalibrationError(f"{path}: not a camera_info map")
+        raise DatasetLayoutError(f"camera_info: {path} is not a map of camera_info fields")
 
-    def matrix(key: str, shape: tuple[int, ...], required: bool = True) -> np.ndarray:
-        node = doc.get(key)
+    def field(*names: str):
+        return next((doc[n] for n in names if n in doc), None)
+
+    def matrix(shape: tuple[int, ...] | None, *names: str, default=None) -> np.ndarray:
+        node = field(*names)
         data = node.get("data") if isinstance(node, dict) else node
         if data is None:
-            if required:
-                raise CalibrationError(f"{path}: no {key}")
-            return np.zeros(shape)
-        try:
-            a = np.array(data, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise CalibrationError(f"{path}: {key} is not numeric") from None
-        if int(np.prod(shape)) and a.size != int(np.prod(shape)):
-            raise CalibrationError(f"{path}: {key} has {a.size} numbers, expected {int(np.prod(shape))}")
-        if not np.all(np.isfinite(a)):
-            raise CalibrationError(f"{path}: {key} contains NaN or inf")
-        return a.reshape(shape) if int(np.prod(shape)) else a.ravel()
+            if default is None:
+                raise DatasetLayoutError(f"camera_info: {path} has no {names[0]}")
+            return default
+        a = numbers(data, None if shape is None else int(np.prod(shape)), f"camera_info: {path}: {names[0]}")
+        return a.ravel() if shape is None else a.reshape(shape)
 
-    try:
-        size = (int(doc["image_width"]), int(doc["image_height"]))
-    except (KeyError, TypeError, ValueError):
-        raise CalibrationError(f"{path}: no integer image_width and image_height") from None
-    return dict(K=matrix("camera_matrix", (3, 3)), D=matrix("distortion_coefficients", (0,), required=False),
-                R=matrix("rectification_matrix", (3, 3), required=False), P=matrix("projection_matrix", (3, 4)),
-                size=size, model=str(doc.get("distortion_model", "plumb_bob")).lower(), binning=(0, 0))
+    width, height = field("image_width", "width"), field("image_height", "height")
+    if width is None or height is None:
+        raise DatasetLayoutError(f"camera_info: {path} has no image_width and image_height")
+    size = numbers([width, height], 2, f"camera_info: {path}: image_width and image_height")
+    binning = [field("binning_x") or 0, field("binning_y") or 0]
+    return dict(K=matrix((3, 3), "camera_matrix", "K", "k"), D=matrix(None, "distortion_coefficients", "D", "d",
+                                                                       default=np.zeros(0)),
+                R=matrix((3, 3), "rectification_matrix", "R", "r", default=np.zeros((3, 3))),
+                P=matrix((3, 4), "projection_matrix", "P", "p"), size=(int(size[0]), int(size[1])),
+                model=str(field("distortion_model") or "plumb_bob").lower(),
+                binning=tuple(int(b) for b in numbers(binning, 2, f"camera_info: {path}: binning")))

@@ -184,29 +184,40 @@ def _write_kalibr(path, rig: RawStereoRig):
     return path
 
 
-def _write_camera_info(d, rig: RawStereoRig):
-    """The rig as ROS's camera_calibration writes it: left.yaml and right.yaml (K, D raw; R, P rectified)."""
+def _write_camera_info(d, rig: RawStereoRig, echo: bool = False):
+    """The rig as ROS's camera_calibration writes it (left.yaml and right.yaml: K, D raw; R, P rectified),
+    or with ``echo`` as ``ros2 topic echo --once`` prints each camera's CameraInfo message."""
     rect = rectify_rig(rig)
     paths = []
     for side, K, D, R, P in (("left", rig.K1, rig.D1, rect.R_left, rect.P_left),
                              ("right", rig.K2, rig.D2, rect.R_right, rect.P_right)):
         path = d / f"{side}.yaml"
-        path.write_text(
-            f"image_width: {W}\nimage_height: {H}\ncamera_name: {side}\n"
-            f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: {_numbers(K)}\n"
-            f"distortion_model: plumb_bob\n"
-            f"distortion_coefficients:\n  rows: 1\n  cols: {np.size(D)}\n  data: {_numbers(D)}\n"
-            f"rectification_matrix:\n  rows: 3\n  cols: 3\n  data: {_numbers(R)}\n"
-            f"projection_matrix:\n  rows: 3\n  cols: 4\n  data: {_numbers(P)}\n")
+        if echo:
+            rows = lambda a: "".join(f"- {float(v)!r}\n" for v in np.ravel(a))  # noqa: E731
+            path.write_text(
+                f"header:\n  stamp:\n    sec: 0\n    nanosec: 0\n  frame_id: {side}\nheight: {H}\nwidth: {W}\n"
+                f"distortion_model: plumb_bob\nd:\n{rows(D)}k:\n{rows(K)}r:\n{rows(R)}p:\n{rows(P)}"
+                "binning_x: 0\nbinning_y: 0\nroi:\n  x_offset: 0\n  y_offset: 0\n  height: 0\n  width: 0\n"
+                "  do_rectify: false\n---\n")
+        else:
+            path.write_text(
+                f"image_width: {W}\nimage_height: {H}\ncamera_name: {side}\n"
+                f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: {_numbers(K)}\n"
+                f"distortion_model: plumb_bob\n"
+                f"distortion_coefficients:\n  rows: 1\n  cols: {np.size(D)}\n  data: {_numbers(D)}\n"
+                f"rectification_matrix:\n  rows: 3\n  cols: 3\n  data: {_numbers(R)}\n"
+                f"projection_matrix:\n  rows: 3\n  cols: 4\n  data: {_numbers(P)}\n")
         paths.append(path)
     return paths
 
 
-@pytest.mark.parametrize("fmt", ["kalibr", "camera_info"])
+@pytest.mark.parametrize("fmt", ["kalibr", "camera_info", "camera_info_echo"])
 def test_a_kalibr_camchain_or_ros_camera_info_files_drive_the_camera_as_well(videos, tmp_path, fmt):
-    # the same raw rig, calibrated with Kalibr or with ROS's camera_calibration instead of flyslam's
+    # the same raw rig, calibrated with Kalibr or ROS's camera_calibration instead of flyslam's, or as its
+    # driver publishes it
     d, rig, truth = videos
-    files = [_write_kalibr(tmp_path / "camchain.yaml", rig)] if fmt == "kalibr" else _write_camera_info(tmp_path, rig)
+    files = [_write_kalibr(tmp_path / "camchain.yaml", rig)] if fmt == "kalibr" else \
+        _write_camera_info(tmp_path, rig, echo=fmt.endswith("echo"))
     loaded = load_rig(files)
     assert ("Kalibr camchain" if fmt == "kalibr" else "ROS camera_info") in loaded.source
     assert loaded.calibration.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
@@ -229,6 +240,10 @@ def test_calibration_files_of_another_format_give_one_line_errors(videos, tmp_pa
     code, err = _run_main(capsys, [*source, "-c", str(left_yaml)])      # the right camera's file forgotten
     assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert str(left_yaml) in err and "two files" in err
+    right_yaml = tmp_path / "right.yaml"
+    right_yaml.write_text(right_yaml.read_text().split("projection_matrix")[0])     # cut short
+    code, err = _run_main(capsys, [*source, "-c", str(left_yaml), "-c", str(right_yaml)])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"{right_yaml} has no projection_matrix" in err
     camchain = _write_kalibr(tmp_path / "camchain.yaml", rig)
     camchain.write_text(camchain.read_text().replace("resolution", "resolutoin"))
     code, err = _run_main(capsys, [*source, "-c", str(camchain)])

@@ -44,6 +44,35 @@ def require(path: Path, what: str) -> Path:
     return path
 
 
+def load_yaml(path: Path, what: str):
+    """The first document of a YAML file (a ``rostopic echo`` dump ends with ``---``), read with rosbags'
+    own YAML reader; DatasetLayoutError "<what>: <path> ..." when it cannot be read."""
+    from ruamel.yaml import YAML, YAMLError
+
+    path = require(Path(path), what)
+    try:
+        docs = YAML(typ="safe", pure=True).load_all(path.read_text())
+        return next((d for d in docs if d is not None), None)
+    except OSError as e:
+        raise DatasetLayoutError(f"{what}: {path} cannot be read ({e.strerror or e})") from None
+    except (YAMLError, UnicodeDecodeError) as e:
+        raise DatasetLayoutError(f"{what}: {path} is not readable YAML ({str(e).splitlines()[0]})") from None
+
+
+def numbers(value, count: int | None, where: str) -> np.ndarray:
+    """``value`` (a YAML list) as finite float64 numbers, ``count`` of them if given; DatasetLayoutError
+    "<where> ..." otherwise."""
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetLayoutError(f"{where} is not numeric") from None
+    if count is not None and a.size != count:
+        raise DatasetLayoutError(f"{where} has {a.size} numbers, expected {count}")
+    if not np.all(np.isfinite(a)):
+        raise DatasetLayoutError(f"{where} contains NaN or inf")
+    return a
+
+
 def map_poses_from_camera(T_w_cam: np.ndarray, reference: np.ndarray | None = None,
                           T_base_camera: np.ndarray = C_BODY_OPTICAL) -> np.ndarray:
     """(N, 4, 4) camera-optical poses in a dataset world → base_link poses in map (see module doc).

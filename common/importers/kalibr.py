@@ -18,6 +18,7 @@ raw-to-rectified rotation of the left camera is kept in :attr:`RectifiedRig.rota
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +27,7 @@ import numpy as np
 
 from common.camera import CalibrationError, StereoCalibration
 from common.geometry import invert
-from common.importers.base import DatasetLayoutError, require
+from common.importers.base import DatasetLayoutError, load_yaml, numbers
 from common.stereo_rectify import DEFAULT_T_BASE_CAMERA, RawStereoRig, rectify_rig
 
 LENS_MODELS = ("equidistant", "radtan")
@@ -91,6 +92,8 @@ def rectify_pair(lens: str, K1, D1, K2, D2, size: tuple[int, int], R, T,
     raw = RawStereoRig(size[0], size[1], K1, D1, K2, D2, R, T, T_base)  # validates K, D, R, T
     if raw.D1.size != 4 or raw.D2.size != 4:
         raise CalibrationError("an equidistant lens has 4 coefficients k1..k4")
+    if abs(raw.T.ravel()[1]) > abs(raw.T.ravel()[0]):      # (fisheye stereoRectify makes any rig horizontal)
+        raise CalibrationError("the cameras are stacked vertically (T mostly along y); flyslam needs a horizontal rig")
     K1, K2, D1, D2 = raw.K1, raw.K2, raw.D1.reshape(4, 1), raw.D2.reshape(4, 1)
     R, T = raw.R.copy(), raw.T.reshape(3, 1).copy()  # contiguous for OpenCV
     try:
@@ -121,28 +124,11 @@ def rectify_pair(lens: str, K1, D1, K2, D2, size: tuple[int, int], R, T,
 # ------------------------------------------------------------------------------------------ camchain
 
 
-def _numbers(value, count: int | None, where: str) -> np.ndarray:
-    try:
-        a = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DatasetLayoutError(f"Kalibr: {where} is not numeric") from None
-    if count is not None and a.size != count:
-        raise DatasetLayoutError(f"Kalibr: {where} has {a.size} numbers, expected {count}")
-    if not np.all(np.isfinite(a)):
-        raise DatasetLayoutError(f"Kalibr: {where} contains NaN or inf")
-    return a
-
-
 def read_camchain(path) -> dict[str, KalibrCamera]:
     """Every ``camN`` entry of a Kalibr camchain.yaml, by name; DatasetLayoutError naming the bad key."""
-    from ruamel.yaml import YAML, YAMLError  # rosbags' own YAML reader
-
-    path = require(Path(path), "Kalibr camchain")
-    try:
-        doc = YAML(typ="safe", pure=True).load(path.read_text())
-    except (YAMLError, UnicodeDecodeError) as e:
-        raise DatasetLayoutError(f"Kalibr: {path} is not readable YAML ({str(e).splitlines()[0]})") from None
-    cams = {k: v for k, v in doc.items() if str(k).startswith("cam")} if isinstance(doc, dict) else {}
+    path = Path(path)
+    doc = load_yaml(path, "Kalibr camchain")
+    cams = {k: v for k, v in doc.items() if re.fullmatch(r"cam\d+", str(k))} if isinstance(doc, dict) else {}
     if not cams:
         raise DatasetLayoutError(f"Kalibr: {path} has no cam0/cam1 entries")
     out = {}
@@ -157,8 +143,8 @@ def read_camchain(path) -> dict[str, KalibrCamera]:
         if model != "pinhole":
             raise DatasetLayoutError(f"Kalibr: {where}: camera_model {model!r} is not supported (pinhole)")
         lens = entry.get("distortion_model", "radtan")
-        fu, fv, pu, pv = _numbers(entry["intrinsics"], 4, f"{where}: intrinsics")
-        coeffs = _numbers(entry["distortion_coeffs"], None, f"{where}: distortion_coeffs").ravel()
+        fu, fv, pu, pv = numbers(entry["intrinsics"], 4, f"Kalibr: {where}: intrinsics")
+        coeffs = numbers(entry["distortion_coeffs"], None, f"Kalibr: {where}: distortion_coeffs").ravel()
         if lens == "none":
             lens, coeffs = "radtan", np.zeros(4)
         if lens not in LENS_MODELS:
@@ -166,8 +152,8 @@ def read_camchain(path) -> dict[str, KalibrCamera]:
                                      f"({', '.join(LENS_MODELS)})")
         if coeffs.size != 4:
             raise DatasetLayoutError(f"Kalibr: {where}: distortion_coeffs has {coeffs.size} numbers, expected 4")
-        w, h = (int(v) for v in _numbers(entry["resolution"], 2, f"{where}: resolution"))
-        transforms = {key: _numbers(entry[key], 16, f"{where}: {key}").reshape(4, 4)
+        w, h = (int(v) for v in numbers(entry["resolution"], 2, f"Kalibr: {where}: resolution"))
+        transforms = {key: numbers(entry[key], 16, f"Kalibr: {where}: {key}").reshape(4, 4)
                       for key in ("T_cn_cnm1", "T_cam_imu") if key in entry}
         out[name] = KalibrCamera(name, lens, np.array([[fu, 0, pu], [0, fv, pv], [0, 0, 1]]), coeffs, (w, h),
                                  transforms.get("T_cn_cnm1"), transforms.get("T_cam_imu"), entry.get("rostopic"))
@@ -198,7 +184,10 @@ def load_camchain(path, left: str = "cam0", right: str = "cam1") -> tuple[Rectif
     if a.size != b.size or a.lens != b.lens:
         raise DatasetLayoutError(f"Kalibr: {path}: {left} ({a.lens}, {a.size}) and {right} ({b.lens}, {b.size}) "
                                  "differ in lens model or resolution")
-    T_rl = transform_between(cams, left, right)
+    try:
+        T_rl = transform_between(cams, left, right)
+    except DatasetLayoutError as e:
+        raise DatasetLayoutError(f"{e} ({path})") from None
     try:
         rig = rectify_pair(a.lens, a.K, a.D, b.K, b.D, a.size, T_rl[:3, :3], T_rl[:3, 3])
     except CalibrationError as e:

@@ -222,6 +222,18 @@ def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right
                                      "(plumb_bob, rational_polynomial, equidistant)")
         if not np.any(info["R"]):
             info["R"] = np.eye(3)
+        P, K, R = info["P"], info["K"], info["R"]
+        if not (P[0, 0] > 0 and P[1, 1] > 0):
+            raise DatasetLayoutError(f"{source}: {topic}: the projection P has no positive focal length "
+                                     f"(fx {P[0, 0]:g}, fy {P[1, 1]:g})")
+        if not rectified and not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise DatasetLayoutError(f"{source}: {topic}: the camera matrix K has no positive focal length "
+                                     f"(fx {K[0, 0]:g}, fy {K[1, 1]:g})")
+        if not rectified and not (np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0):
+            raise DatasetLayoutError(f"{source}: {topic}: the rectification matrix R is not a rotation")
+        if not rectified and info["model"] == "equidistant" and np.size(info["D"]) != 4:
+            raise DatasetLayoutError(f"{source}: {topic}: an equidistant lens has 4 coefficients k1..k4, "
+                                     f"got {np.size(info['D'])}")
     Pl, Pr = left["P"], right["P"]
     if left["size"] != right["size"]:
         raise DatasetLayoutError(f"{source}: {left_topic} is {left['size']} but {right_topic} is {right['size']}")
@@ -248,9 +260,9 @@ def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right
             D_right=_opencv_distortion(raw(right, "D", np.zeros(5)), f"{source}: {right_topic}"), R_right=raw(right, "R", np.eye(3)),
             T_base_camera=T_BASE_CAMERA.copy())
     except CalibrationError as e:
-        raise DatasetLayoutError(f"{source}: {left_topic}/{right_topic} CameraInfo: {e}") from None
+        raise DatasetLayoutError(f"{source}: {left_topic} and {right_topic} CameraInfo: {e}") from None
     if fisheye:
-        maps = tuple(lens_maps("equidistant", i["K"], i["D"][:4], i["R"], i["P"], i["size"]) for i in (left, right))
+        maps = tuple(lens_maps("equidistant", i["K"], i["D"], i["R"], i["P"], i["size"]) for i in (left, right))
         rig = RectifiedRig(calib, maps, left["R"], left["size"], "equidistant")
         return calib, rig.rectify, left["R"], "equidistant lenses, rectified on import"
     rectifier = StereoRectifier(calib)
