@@ -325,15 +325,27 @@ class FlyLocaliser:
         Only the two views' overlap registers: kf's flies the old camera sees, against the old flies
         kf's camera sees.  Two keyframes metres apart along a corridor share a small part of the nearer
         one's flies; the rest, with no counterpart, slide it to the window's edge along the corridor, and
-        the heading and lateral offset then take what the pinned axis cannot."""
+        the heading and lateral offset then take what the pinned axis cannot.
+
+        The old side is the old keyframe with its neighbours (``local_keyframes`` of them, by id: poses
+        registered one to the next, so consistent with each other), as tracking registers against a local
+        map, not one keyframe: on the loop scenario a new keyframe 2.5 m behind the first one shared 275 of
+        its flies with it, and δ against that one keyframe's flies was 2.8° and 0.23 m off; against the
+        three keyframes around it, 0.1° and 0.02 m."""
         c = self.config
+        half = c.local_keyframes // 2
+        near = [k for k in self.backend.archive.values()       # (old enough to close a loop, like old)
+                if abs(k.id - old.id) <= half and k.id <= max(old.id, kf.id - c.loop_min_separation)]
         A_map = transform_points(kf.T_map_base, kf.points.astype(np.float64))
-        in_a = self._in_view(A_map, old.T_map_base)
-        in_b = self._in_view(old.points_map.astype(np.float64), kf.T_map_base)
+        in_a = np.zeros(len(A_map), bool)
+        for k in near:
+            in_a |= self._in_view(A_map, k.T_map_base)
+        old_map = np.concatenate([k.points_map for k in near]).astype(np.float64)
+        in_b = self._in_view(old_map, kf.T_map_base)
         if min(in_a.sum(), in_b.sum()) < c.min_flies:
             return None
         A = kf.points[in_a].astype(np.float64)
-        B = transform_points(invert(kf.T_map_base), old.points_map[in_b].astype(np.float64))
+        B = transform_points(invert(kf.T_map_base), old_map[in_b])
         weights_a = kf.fitness[in_a] / max(float(kf.fitness.max()), 1e-12)
         window = np.array(c.loop_window, dtype=float)
 
