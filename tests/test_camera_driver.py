@@ -166,6 +166,18 @@ def test_missing_file_and_unknown_units_are_clear_errors(videos, tmp_path, capsy
     assert calib.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
 
 
+def _assert_plays_the_truth(capture, pipeline, truth):
+    """Every pair the capture gives, rectified by the pipeline, is the rectified truth, in order."""
+    frames = []
+    while (pair := capture.read()) is not None:
+        frames.append(pipeline.frame(*pair, seq=len(frames) + 1, stamp_ns=0))
+    capture.close()
+    assert len(frames) == N_FRAMES
+    for msg, (tl, tr) in zip(frames, truth):
+        left, right = frame_images(msg)
+        assert _interior_error(left, tl) < 6 and _interior_error(right, tr) < 6
+
+
 def _numbers(a) -> str:
     return "[" + ", ".join(repr(float(v)) for v in np.ravel(a)) + "]"
 
@@ -222,15 +234,7 @@ def test_a_kalibr_camchain_or_ros_camera_info_files_drive_the_camera_as_well(vid
     assert ("Kalibr camchain" if fmt == "kalibr" else "ROS camera_info") in loaded.source
     assert loaded.calibration.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
     capture = camera.StereoCapture(loaded.calibration, left=str(d / "left.avi"), right=str(d / "right.avi"))
-    pipeline = camera.StereoPipeline(loaded, "rgb8")
-    frames = []
-    while (pair := capture.read()) is not None:
-        frames.append(pipeline.frame(*pair, seq=len(frames) + 1, stamp_ns=0))
-    capture.close()
-    assert len(frames) == N_FRAMES
-    for msg, (tl, tr) in zip(frames, truth):
-        left, right = frame_images(msg)
-        assert _interior_error(left, tl) < 6 and _interior_error(right, tr) < 6
+    _assert_plays_the_truth(capture, camera.StereoPipeline(loaded, "rgb8"), truth)
 
 
 def test_calibration_files_of_another_format_give_one_line_errors(videos, tmp_path, capsys):
@@ -276,15 +280,7 @@ def test_image_folders_play_as_a_camera_in_their_natural_order(videos, image_fol
     # a glob pattern for one side, a folder for the other
     capture = camera.StereoCapture(calib, left=str(left_dir / "left_*.png"), right=str(right_dir))
     assert capture.is_file and capture.is_sequence and capture.fps == 0
-    pipeline = camera.StereoPipeline(calib, "rgb8")
-    frames = []
-    while (pair := capture.read()) is not None:
-        frames.append(pipeline.frame(*pair, seq=len(frames) + 1, stamp_ns=0))
-    capture.close()
-    assert len(frames) == N_FRAMES
-    for msg, (tl, tr) in zip(frames, truth):       # 8, 9, 10, 11, 12: not 10, 11, 12, 8, 9
-        left, right = frame_images(msg)
-        assert _interior_error(left, tl) < 6 and _interior_error(right, tr) < 6
+    _assert_plays_the_truth(capture, camera.StereoPipeline(calib, "rgb8"), truth)   # 8, 9, 10, 11, 12 in order
 
 
 def test_image_folders_need_a_rate_and_matching_counts(videos, image_folders, tmp_path, capsys):
