@@ -48,7 +48,7 @@ class LocaliserConfig:
     photometric_reference_spacing: float = 0.1   # renew the reference after moving this × its median depth ...
     photometric_reference_angle_rad: float = np.deg2rad(5.0)   # ... or turning this much
     pose_graph: bool = True             # keyframes as nodes of common.slam.backend's pose graph
-    loop_closure: bool = False          # register a new keyframe against an old one near it
+    loop_closure: bool = True           # register a new keyframe against old ones near it (a loop factor)
     loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
     loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
     loop_min_separation: int = 10       # ... and is at least this many keyframes older
