@@ -45,7 +45,7 @@ if TYPE_CHECKING:    # imported at run time by load_localiser, in a thread: it i
     from common.slam.core import LocaliserCore, LocaliserOutput
 
 log = logging.getLogger("flyslam.localiser")
-LOCALISER_FLAGS = ["max_keyframes", "max_depth_m", "odometry"]
+LOCALISER_FLAGS = ["max_keyframes", "max_depth_m", "odometry", "loop_closure"]
 RENAME = {"max_depth_m": "max-depth"}
 
 
@@ -56,7 +56,8 @@ def build_parser():
     add_config_arguments(p, LocaliserConfig, only=LOCALISER_FLAGS, rename=RENAME, helps={
         "max_keyframes": "keyframes kept in the map (oldest dropped)",
         "max_depth_m": "flies farther than this (m, camera depth) are not used (default: 0.3 f B)",
-        "odometry": "'wheels' (fusion/odom predicts) or 'visual' (no wheels: constant velocity)"})
+        "odometry": "'wheels' (fusion/odom predicts) or 'visual' (no wheels: constant velocity)",
+        "loop_closure": "register a new keyframe against old ones near it: a loop factor of the pose graph"})
     return p
 
 
