@@ -30,14 +30,13 @@ from common.importers.kalibr import load_camchain
 from common.importers.rosbag import calibration_from_camera_info
 from common.stereo_rectify import StereoRectifier, load_calibration
 
-FORMATS = ("opencv", "kalibr", "camera_info")
 _KALIBR = re.compile(r"^cam\d+\s*:", re.MULTILINE)
 # top-level keys of camera_calibration's file (camera_matrix, ...) or of an echoed CameraInfo message
 _CAMERA_INFO = re.compile(r"^(camera_matrix|projection_matrix|distortion_model)\s*:", re.MULTILINE)
 
-# calibration_from_camera_info speaks to `flyslam import rosbag`'s flags; here the files are the flags
-_CAMERA_INFO_REMEDIES = {"swap --left and --right": "give the left camera's file first",
-                         "(use --camchain)": "(calibrate the two cameras as one stereo rig)"}
+# what to do about a swapped or unpaired rig, said in terms of this command's inputs (the files)
+_CAMERA_INFO_REMEDIES = {"swap": "give the left camera's file first",
+                         "pair": "calibrate the two cameras as one stereo rig"}
 
 Rectify = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -87,13 +86,11 @@ def load_rig(paths, units_m: float | None = None) -> CalibratedRig:
                                    "right's (repeat --calibration)")
         left, right = (read_camera_info_yaml(p) for p in paths)
         calib, rectify, _, how = calibration_from_camera_info(left, right, str(paths[0]), str(paths[1]),
-                                                              rectified=False, source="camera_info")
+                                                              rectified=False, source="camera_info",
+                                                              remedies=_CAMERA_INFO_REMEDIES)
         return CalibratedRig(calib, rectify, f"ROS camera_info ({how})")
     except DatasetLayoutError as e:
-        text = str(e)
-        for flag, remedy in _CAMERA_INFO_REMEDIES.items():
-            text = text.replace(flag, remedy) if kind == "camera_info" else text
-        raise CalibrationError(text) from None
+        raise CalibrationError(str(e)) from None
 
 
 def read_camera_info_yaml(path) -> dict:

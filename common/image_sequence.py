@@ -68,9 +68,6 @@ class ImageSequence:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
         return True, img
 
-    def read(self) -> tuple[bool, np.ndarray | None]:
-        return self.retrieve() if self.grab() else (False, None)
-
     def set(self, prop: int, value: float) -> bool:
         if prop != cv2.CAP_PROP_POS_FRAMES:
             return False
@@ -78,9 +75,7 @@ class ImageSequence:
         return True
 
     def get(self, prop: int) -> float:
-        if prop == cv2.CAP_PROP_FRAME_COUNT:
-            return float(len(self.files))
-        return 0.0                 # CAP_PROP_FPS among them: no rate of its own
+        return 0.0                 # CAP_PROP_FPS, the only one asked: no rate of its own
 
     def release(self) -> None:
         self.files = []

@@ -50,8 +50,13 @@ def _quiet_opencv():
         logging_mod.setLogLevel(logging_mod.LOG_LEVEL_ERROR)
 
 
+def is_device(spec: str) -> bool:
+    """A device index or a device path, not a file."""
+    return spec.isdigit() or spec.startswith("/dev/")
+
+
 def describe(spec: str) -> str:
-    if spec.isdigit() or spec.startswith("/dev/"):
+    if is_device(spec):
         return f"camera device {spec}"
     return f"image sequence {spec}" if is_image_sequence(spec) else f"video file {spec}"
 
@@ -60,19 +65,19 @@ def open_capture(spec: str, size: tuple[int, int] | None = None, fps: float | No
     """VideoCapture of a device index / device path / video file, or an ImageSequence (a glob pattern or a
     folder of images); devices are asked for ``size`` and ``fps`` and for a one-frame buffer (a paced
     reader then gets fresh frames, not queued ones)."""
-    is_device = spec.isdigit() or spec.startswith("/dev/")
-    if not is_device and is_image_sequence(spec):
+    device = is_device(spec)
+    if not device and is_image_sequence(spec):
         sequence = ImageSequence(spec)
         if not sequence.isOpened():
             raise CameraError(f"{describe(spec)}: no image files ({', '.join(s[1:] for s in IMAGE_SUFFIXES)})")
         return sequence
-    if not is_device and not Path(spec).is_file():
+    if not device and not Path(spec).is_file():
         raise CameraError(f"{describe(spec)} not found")
     _quiet_opencv()
     cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
     if not cap.isOpened():
         raise CameraError(f"{describe(spec)} could not be opened")
-    if is_device:
+    if device:
         if size is not None:
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
             cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
@@ -97,14 +102,14 @@ class StereoCapture:
             raise CameraError("give either --sbs, or both --left and --right")
         self.specs = [sbs] if sbs is not None else [left, right]
         self.side_by_side = sbs is not None
-        self.is_file = not any(s.isdigit() or s.startswith("/dev/") for s in self.specs)
-        self.is_sequence = any(is_image_sequence(s) for s in self.specs if self.is_file)
+        self.is_file = not any(is_device(s) for s in self.specs)
         self.loop = loop
         w, h = calib.width, calib.height
         want = (2 * w, h) if self.side_by_side else (w, h)
         self.caps = []
         try:
             self.caps = [open_capture(s, want, fps) for s in self.specs]
+            self.is_sequence = any(isinstance(c, ImageSequence) for c in self.caps)
             counts = [len(c.files) for c in self.caps if isinstance(c, ImageSequence)]
             if len(counts) == 2 and counts[0] != counts[1]:
                 raise CameraError(f"{describe(self.specs[0])} holds {counts[0]} images but {describe(self.specs[1])} "
@@ -182,7 +187,7 @@ class StereoPipeline:
             raise CameraError(f"unknown encoding {encoding!r} (use one of {', '.join(RAW_ENCODINGS + COMPRESSED_ENCODINGS)})")
         if isinstance(rig, StereoCalibration):
             rig = CalibratedRig(rig, StereoRectifier(rig).rectify, "calibration")
-        self.calib, self._rectify = rig.calibration, rig.rectify
+        self.calib, self.rectify = rig.calibration, rig.rectify      # rectify(left, right): raw → rectified
         self.encoding, self.quality = encoding, quality
 
     def frame(self, left_bgr: np.ndarray, right_bgr: np.ndarray, seq: int, stamp_ns: int) -> StereoFrame:
@@ -190,7 +195,7 @@ class StereoPipeline:
         left, right = (cv2.cvtColor(img, code) if img.ndim == 3 else img for img in (left_bgr, right_bgr))
         if self.encoding != "mono8" and left.ndim == 2:
             left, right = cv2.cvtColor(left, cv2.COLOR_GRAY2RGB), cv2.cvtColor(right, cv2.COLOR_GRAY2RGB)
-        left, right = self._rectify(left, right)
+        left, right = self.rectify(left, right)
         return make_frame(left, right, seq=seq, stamp_ns=stamp_ns, encoding=self.encoding, quality=self.quality)
 
 

@@ -208,10 +208,15 @@ def _info_arrays(msg) -> dict:
                 binning=(int(msg.binning_x), int(msg.binning_y)))
 
 
-def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right_topic: str,
-                                 rectified: bool, source: str = "ROS bag") -> tuple[StereoCalibration, object, np.ndarray, str]:
+ROSBAG_REMEDIES = {"swap": "swap --left and --right", "pair": "use --camchain"}
+
+
+def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right_topic: str, rectified: bool,
+                                 source: str = "ROS bag", remedies: dict[str, str] = ROSBAG_REMEDIES
+                                 ) -> tuple[StereoCalibration, object, np.ndarray, str]:
     """(calibration, rectify(left, right) callable, raw-to-rectified rotation of the left camera, how the
-    images are treated, in words).  ``source`` begins every error message (the topics, or files, follow)."""
+    images are treated, in words).  ``source`` begins every error message (the topics, or files, follow);
+    ``remedies`` says what to do about a swapped ("swap") or an unpaired ("pair") rig in the caller's terms."""
     for info, topic in ((left, left_topic), (right, right_topic)):
         if not np.any(info["P"]):
             raise DatasetLayoutError(f"{source}: {topic}: CameraInfo has no projection P (camera not calibrated)")
@@ -239,15 +244,15 @@ def calibration_from_camera_info(left: dict, right: dict, left_topic: str, right
         raise DatasetLayoutError(f"{source}: {left_topic} is {left['size']} but {right_topic} is {right['size']}")
     if not np.allclose([Pl[0, 0], Pl[1, 1], Pl[1, 2]], [Pr[0, 0], Pr[1, 1], Pr[1, 2]], rtol=1e-6, atol=1e-6):
         raise DatasetLayoutError(f"{source}: {left_topic} and {right_topic}: the CameraInfo projections P differ in "
-                                 "fx, fy or cy, so they are not a rectified stereo pair (use --camchain)")
+                                 f"fx, fy or cy, so they are not a rectified stereo pair ({remedies['pair']})")
     fx = Pl[0, 0]
     baseline = (Pl[0, 3] - Pr[0, 3]) / fx
     if baseline == 0:
         raise DatasetLayoutError(f"{source}: {right_topic}: CameraInfo P has no baseline (P[0,3] = 0): the cameras "
-                                 "were not calibrated as a stereo pair (use --camchain)")
+                                 f"were not calibrated as a stereo pair ({remedies['pair']})")
     if baseline < 0:
         raise DatasetLayoutError(f"{source}: {right_topic} is to the LEFT of {left_topic} (baseline {baseline:.3f} m "
-                                 "from P); swap --left and --right")
+                                 f"from P); {remedies['swap']}")
     fisheye = not rectified and left["model"] == "equidistant"
     keep_raw = not rectified and not fisheye
     raw = lambda info, name, default: info[name] if keep_raw else default  # noqa: E731
