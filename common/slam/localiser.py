@@ -298,24 +298,28 @@ class FlyLocaliser:
         be.add(kf, links, fix_cov)
         old = be.loop_candidate(kf, exclude=set()) if self.config.loop_closure else None
         handle = self._close_loop(old, kf) if old is not None else None
-        try:
-            C = be.optimise(kf.id)
-        except PoseGraphError:
-            # iSAM2 refuses a system it cannot eliminate (a front end that diverged hands it factors
-            # that contradict everything): start it again from a damped batch solve, and if even that
-            # fails keep the front end's poses; the localiser carries on either way.
-            self.graph_failures += 1
-            try:
-                C = be.optimise(kf.id, batch=True)
-            except PoseGraphError:
-                C = np.eye(4)
+        C = self._optimise_graph(kf.id)
         if handle is not None and be.drop_if_outvoted(handle):
             be.loops[-1].accepted, be.loops[-1].reason = False, "outvoted by the graph"
-            C = be.optimise(kf.id) @ C
+            C = self._optimise_graph(kf.id) @ C
         elif handle is not None:
             self._revisit_anchor = old.id
         self._map_cache = self._visible_cache = None
         return C
+
+    def _optimise_graph(self, newest_id: int) -> np.ndarray:
+        """The back-end's correction of the newest keyframe (identity when the graph cannot be solved).
+        iSAM2 refuses a system it cannot eliminate (a front end that diverged hands it factors that
+        contradict everything): start it again from a damped batch solve, and if even that fails keep
+        the front end's poses; the localiser carries on either way."""
+        try:
+            return self.backend.optimise(newest_id)
+        except PoseGraphError:
+            self.graph_failures += 1
+            try:
+                return self.backend.optimise(newest_id, batch=True)
+            except PoseGraphError:
+                return np.eye(4)
 
     def _close_loop(self, old: Keyframe, kf: Keyframe) -> int | None:
         """Register keyframe ``kf``'s flies against the old keyframe's (δ, planar, around kf's pose); an
@@ -408,7 +412,7 @@ class FlyLocaliser:
                 first = self.backend.archive[kfs[0].id]
                 self.backend.graph.add_prior(first.id, first.T_map_base, np.diag([1e-3] * 3 + [1e-4] * 3) ** 2)
             self.backend._last_id = kfs[-1].id
-            self.backend.optimise(kfs[-1].id)
+            self._optimise_graph(kfs[-1].id)     # unsolvable: the saved poses stand
         self._next_id = max((k.id for k in kfs), default=-1) + 1
         self.map_loaded = bool(kfs)
         self._map_cache = self._visible_cache = None
