@@ -17,7 +17,11 @@ ground truth re-expressed for it (poses of the frames kept, in the variant's bas
 * ``gain``: the right camera 20 % less exposed and 10 grey levels offset (two auto-exposures that do
   not agree, common on hobby stereo rigs);
 * ``exposure``: both cameras' exposure swinging ±30 % over a few frames (auto-exposure driving in and
-  out of shade).
+  out of shade);
+* ``sway``: the rig pitching ±SWAY_DEG about its baseline, one swing every SWAY_PERIOD frames (a
+  hand-held rig, a robot on rough ground).  Both images are warped by K·Rₓᵀ·K⁻¹ (a rotation about the
+  baseline keeps a rectified pair rectified, so the warp is exact) and lose the rows the warp can leave
+  black (a 1241×294 camera).
 """
 from __future__ import annotations
 
@@ -31,7 +35,43 @@ from common.geometry import invert
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
-VARIANTS = ("stride2", "stride3", "reverse", "half", "crop640", "mount0", "noisy", "gain", "exposure")
+VARIANTS = ("stride2", "stride3", "reverse", "half", "crop640", "mount0", "noisy", "gain", "exposure", "sway")
+SWAY_DEG, SWAY_PERIOD = 3.0, 12
+
+
+def sway_pitch(frame: int) -> float:
+    """The ``sway`` variant's pitch (rad) of the rig at a frame of the clip, about the optical x axis
+    (positive: nose up)."""
+    return float(np.radians(SWAY_DEG) * np.sin(2.0 * np.pi * frame / SWAY_PERIOD))
+
+
+def _rectified_K(calib, side: str, y_shift: float) -> np.ndarray:
+    """3×3 intrinsics of one rectified camera of ``calib``, its principal point ``y_shift`` rows lower."""
+    cx = calib.cx_left if side == "left" else calib.cx_right
+    return np.array([[calib.fx, 0.0, cx], [0.0, calib.fy, calib.cy + y_shift], [0.0, 0.0, 1.0]])
+
+
+def _sway_margin(calib) -> int:
+    """Rows the sway's warp can leave black at the top or bottom of the image (the edges' largest
+    inward move at ±SWAY_DEG), plus one."""
+    K = _rectified_K(calib, "left", 0)
+    u = np.linspace(0, calib.width - 1, 33)
+    edges = np.concatenate([np.stack([u, np.zeros_like(u), np.ones_like(u)]),
+                            np.stack([u, np.full_like(u, calib.height - 1), np.ones_like(u)])], axis=1)
+    inward = 0.0
+    for angle in (np.radians(SWAY_DEG), -np.radians(SWAY_DEG)):
+        p = K @ _pitch(angle)[:3, :3].T @ np.linalg.inv(K) @ edges
+        v = p[1] / p[2]
+        inward = max(inward, v[:33].max(), (calib.height - 1 - v[33:]).max())
+    return int(np.ceil(inward)) + 1
+
+
+def _pitch(angle: float) -> np.ndarray:
+    """4×4 rotation by ``angle`` about the optical x axis."""
+    c, s = np.cos(angle), np.sin(angle)
+    T = np.eye(4)
+    T[1:3, 1:3] = [[c, -s], [s, c]]
+    return T
 
 
 def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
@@ -50,6 +90,12 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
     x0 = (calib.width - 640) // 2 if name == "crop640" else 0
     if scale != 1.0:
         calib = calib.scaled(scale)
+    y0 = _sway_margin(calib) if name == "sway" else 0
+    if y0:      # rows the warp can leave black, cut off: a swaying camera sees the scene there
+        K_left, K_right = calib.K_left.copy(), calib.K_right.copy()
+        K_left[1, 2] -= y0
+        K_right[1, 2] -= y0
+        calib = replace(calib, height=calib.height - 2 * y0, cy=calib.cy - y0, K_left=K_left, K_right=K_right)
     if x0:
         K_left, K_right = calib.K_left.copy(), calib.K_right.copy()
         K_left[0, 2] -= x0
@@ -60,6 +106,8 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
     calib = replace(calib, T_base_camera=np.asarray(T_base_camera, float).copy())
     # truth: T_map_base of the frames kept, re-based on the first kept frame and on the new mounting
     T_map_cam = ds.truth_poses[index] @ ds.calibration.T_base_camera
+    if name == "sway":
+        T_map_cam = np.stack([T @ _pitch(sway_pitch(int(k))) for T, k in zip(T_map_cam, index)])
     T_cam0_cam = invert(T_map_cam[0]) @ T_map_cam
     truth = calib.T_base_camera @ T_cam0_cam @ invert(calib.T_base_camera)
     stamps = ds.stamps_ns[0] + np.arange(len(index), dtype=np.int64) * step_ns * stride
@@ -80,6 +128,12 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
             left, right = (np.clip(img.astype(np.float32) * g, 0, 255).astype(np.uint8) for img in (left, right))
         if name == "gain":
             right = np.clip(right.astype(np.float32) * 0.8 + 10.0, 0, 255).astype(np.uint8)
+        if name == "sway":   # a point X in the clip's camera is Rₓᵀ·X in the swayed one
+            R = _pitch(sway_pitch(int(index[i])))[:3, :3]
+            warps = [_rectified_K(calib, side, 0) @ R.T @ np.linalg.inv(_rectified_K(calib, side, y0))
+                     for side in ("left", "right")]
+            left, right = (cv2.warpPerspective(img, H, (calib.width, calib.height), flags=cv2.INTER_LINEAR)
+                           for img, H in zip((left, right), warps))
         return left, right
 
     return StereoDataset(f"{ds.name}, {name}", calib, stamps, load_pair, stamps, truth)

@@ -447,13 +447,17 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
                       new_pyramid: list[np.ndarray], K: np.ndarray, T_center: np.ndarray | None = None,
                       count: int = 3, max_candidates_per_axis: int = 11, max_flies: int = 200) -> list[np.ndarray]:
     """Starts for :func:`align_flies` when the motion is unknown, best first: a lattice of camera
-    motions (lateral x, forward z, yaw about the optical y axis) around ``T_center``, scored at the
-    coarsest pyramid level by the robust mean residual of the flies' zero-mean neighbourhoods; the
-    ``count`` deepest local minima of that score (distinct basins: on a deep scene a sideways step
-    with a turn can score nearly as well as the forward motion, and only the full alignment tells).
+    motions (lateral x, forward z, yaw about the optical y axis, pitch about its x axis) around
+    ``T_center``, scored at the coarsest pyramid level by the robust mean residual of the flies'
+    zero-mean neighbourhoods; the ``count`` deepest local minima of that score (distinct basins: on a
+    deep scene a sideways step with a turn can score nearly as well as the forward motion, and only
+    the full alignment tells).
 
     The lattice spans what keeps the views overlapping — ±0.1 × the flies' median depth sideways,
-    ±0.25 × it forwards, ±5° of yaw — with steps that move a fly ~1.5 coarse pixels."""
+    ±0.25 × it forwards, ±5° of yaw and of pitch — with steps that move a fly ~1.5 coarse pixels (about
+    half as many yaws and pitches: a lateral step mostly looks like a yaw, a vertical image shift is what
+    a pitch makes and the alignment's basin holds a few coarse pixels of it).  Without pitch, a rig that
+    pitched 1.6° between its first two frames (KITTI 00 swaying ±3°) started from a sideways step."""
     P = np.asarray(points_ref, np.float64)
     w = np.asarray(weights, np.float64)
     ok = np.isfinite(P).all(1) & (P[:, 2] > 0.1) & np.isfinite(w) & (w > 0)
@@ -473,43 +477,53 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     z_med = float(np.median(P[fit, 2]))
     step_px = 1.5
 
-    def axis(half, step):
+    def axis(half, step, halved=False):
         n = int(min(max_candidates_per_axis, 2 * np.ceil(half / step) + 1)) | 1
+        if halved and n > 5:   # about half as many, still spanning ±half with the centre's among them
+            n = (n + 1) // 2 | 1
         return np.linspace(-half, half, n)
     xs = axis(0.1 * z_med, step_px * z_med / fx)
     zs = axis(0.25 * z_med, step_px * z_med / (0.5 * fx))
-    yaws = axis(np.deg2rad(5.0), step_px / fx)
-    if max_candidates_per_axis > 5:
-        # about half as many yaws (a lateral step mostly looks like one), still spanning ±5° with the
-        # centre's among them (an odd count)
-        yaws = np.linspace(yaws[0], yaws[-1], (len(yaws) + 1) // 2 | 1)
-    X, Z, Y = np.meshgrid(xs, zs, yaws, indexing="ij")
-    X, Z, Y = X.ravel(), Z.ravel(), Y.ravel()
+    yaws = axis(np.deg2rad(5.0), step_px / fx, halved=max_candidates_per_axis > 5)
+    pitches = axis(np.deg2rad(5.0), step_px / fy, halved=max_candidates_per_axis > 5)
+    X, Z, Y = (a.ravel() for a in np.meshgrid(xs, zs, yaws, indexing="ij"))
     c, sn = np.cos(Y), np.sin(Y)
-    Pc = P @ T0[:3, :3].T + T0[:3, 3]                                  # flies under the centre motion
-    # candidate m: rot_y(yaw) · p + (x, 0, z)
-    px = c[:, None] * Pc[None, :, 0] + sn[:, None] * Pc[None, :, 2] + X[:, None]
-    pz = -sn[:, None] * Pc[None, :, 0] + c[:, None] * Pc[None, :, 2] + Z[:, None]
-    py = np.broadcast_to(Pc[None, :, 1], px.shape)
-    front = pz > 0.1
-    pz = np.where(front, pz, 1.0)
-    u = fx * px / pz + cx
-    v = fy * py / pz + cy
     Iref, Inew = ref_pyramid[level], new_pyramid[level]
     u0, v0 = _project(P, fx, fy, cx, cy)
     ref = _sample(Iref, u0[:, None] + PATTERN[None, :, 0], v0[:, None] + PATTERN[None, :, 1])
     ref = ref - ref.mean(1, keepdims=True)
-    cur = _sample(Inew, u[:, :, None] + PATTERN[None, None, :, 0], v[:, :, None] + PATTERN[None, None, :, 1])
-    r = np.abs(cur - cur.mean(2, keepdims=True) - ref[None])          # (M, N, 9)
-    valid = front & np.isfinite(r).all(2) & np.isfinite(ref).all(1)[None]
-    per_fly = np.where(valid, np.minimum(np.nan_to_num(r.mean(2), nan=0.0), 20.0), 20.0)   # truncated
-    score = (per_fly * w[None]).sum(1) / w.sum()
-    grid = score.reshape(len(xs), len(zs), -1)
+    Pc = P @ T0[:3, :3].T + T0[:3, 3]                                  # flies under the centre motion
+    scores = []
+    for pitch in pitches:               # one (x, z, yaw) lattice per pitch (a loop of ≤ 11, not over flies)
+        Rp = _rot_x(pitch)
+        Q = Pc @ Rp.T
+        # candidate m: rot_y(yaw) · rot_x(pitch) · p + (x, 0, z)
+        px = c[:, None] * Q[None, :, 0] + sn[:, None] * Q[None, :, 2] + X[:, None]
+        pz = -sn[:, None] * Q[None, :, 0] + c[:, None] * Q[None, :, 2] + Z[:, None]
+        py = np.broadcast_to(Q[None, :, 1], px.shape)
+        front = pz > 0.1
+        pz = np.where(front, pz, 1.0)
+        u = fx * px / pz + cx
+        v = fy * py / pz + cy
+        cur = _sample(Inew, u[:, :, None] + PATTERN[None, None, :, 0], v[:, :, None] + PATTERN[None, None, :, 1])
+        r = np.abs(cur - cur.mean(2, keepdims=True) - ref[None])      # (M, N, 9)
+        valid = front & np.isfinite(r).all(2) & np.isfinite(ref).all(1)[None]
+        per_fly = np.where(valid, np.minimum(np.nan_to_num(r.mean(2), nan=0.0), 20.0), 20.0)   # truncated
+        scores.append((per_fly * w[None]).sum(1) / w.sum())
+    score = np.stack(scores, axis=1).ravel()                           # (x, z, yaw, pitch) order
+    grid = score.reshape(len(xs), len(zs), len(yaws), len(pitches))
     minima = np.flatnonzero(grid.ravel() <= minimum_filter(grid, size=3, mode="nearest").ravel())
     starts = []
     for best in minima[np.argsort(score[minima], kind="stable")][:max(1, count)]:
+        m, k = divmod(int(best), len(pitches))
         D = np.eye(4)
-        D[:3, :3] = np.array([[c[best], 0, sn[best]], [0, 1, 0], [-sn[best], 0, c[best]]])
-        D[:3, 3] = (X[best], 0.0, Z[best])
+        D[:3, :3] = np.array([[c[m], 0, sn[m]], [0, 1, 0], [-sn[m], 0, c[m]]]) @ _rot_x(pitches[k])
+        D[:3, 3] = (X[m], 0.0, Z[m])
         starts.append(D @ T0)
     return starts
+
+
+def _rot_x(angle: float) -> np.ndarray:
+    """3×3 rotation by ``angle`` about the x axis (optical frame: a pitch)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
