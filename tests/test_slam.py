@@ -289,3 +289,17 @@ def test_a_first_fix_long_after_the_maps_origin_restarts_the_map():
     v = seen_from(planar_pose(1.0, 0, 0), world)
     gap = gappy.update(8 * 10**8, v, np.full(len(v), 0.5), None, generation=500)      # a gap in the odometry
     assert not gap.status.startswith("initialised") and gappy.map_restarts == 0
+
+
+def test_a_slow_camera_s_next_frame_does_not_restart_the_map():
+    """A camera slower than first_fix_gap_s (KITTI at every third frame, 0.3 s apart): its second
+    frame comes late because no frame comes sooner, so the map keeps its origin and fixes from it."""
+    rng = np.random.default_rng(7)
+    world = room_points(rng, 20000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(odometry="visual", first_fix_gap_s=0.3))
+    for k, x in enumerate((0.0, 0.3, 0.6)):
+        v = seen_from(planar_pose(x, 0, 0), world)
+        est = loc.update(int(k * 0.5e9), v, np.full(len(v), 0.5), generation=500, next_frame=k > 0)
+        assert est.status.startswith("initialised") == (k == 0), est.status
+    stamps, _ = loc.trajectory()
+    assert loc.map_restarts == 0 and stamps[0] == 0 and len(stamps) == 3   # it starts with the first frame

@@ -105,6 +105,7 @@ class LocaliserCore(LatchedInputs):
     def on_population(self, pop: m.FlyPopulation) -> LocaliserOutput:
         if pop.source_seq == self._last_source_seq:
             return LocaliserOutput(reason="republished")
+        next_frame = self._last_source_seq is not None and pop.source_seq == self._last_source_seq + 1
         self._last_source_seq = pop.source_seq
         if self.localiser is None:
             if self._calibration_msg is None:
@@ -125,7 +126,8 @@ class LocaliserCore(LatchedInputs):
                 searched = self._relocalise(pop, T_odom_base)
                 if searched is not None:
                     return searched
-            est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, image=pop.image)
+            est = loc.update(stamp, pop.positions, pop.fitness, T_odom_base, pop.generation, image=pop.image,
+                             next_frame=next_frame)
         except LocaliserError as e:
             return LocaliserOutput(reason=f"bad population: {e}")
         if est.keyframe_added:
