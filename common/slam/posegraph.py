@@ -289,6 +289,7 @@ class PoseGraph:
             graph.add(self._factor_of(tag))
         for k in sorted(constrained - self._in_solver):
             values.insert(self._key(k), self._current_pose(k))
+        in_solver_before = set(self._in_solver)
         try:
             result = self._isam.update(graph, values, self._removed_indices)
             for tag, index in zip(ready, result.getNewFactorsIndices()):
@@ -306,6 +307,7 @@ class PoseGraph:
                 error = new_error
         except RuntimeError as e:        # GTSAM's IndeterminantLinearSystem and friends
             self._isam_broken = True
+            self._in_solver = in_solver_before   # the new keyframes keep their initial poses
             if self._factorization != "QR":    # Cholesky's failure: solve it all again, by QR
                 self._factorization = "QR"
                 return self._optimise_batch(max_iterations)
@@ -353,8 +355,7 @@ class PoseGraph:
         params.setMaxIterations(int(max_iterations))
         try:
             estimate = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        except RuntimeError as e:
-            self._isam_broken = True
+        except RuntimeError as e:        # (iSAM2 untouched: as healthy, or as broken, as it was)
             raise PoseGraphError(f"pose graph cannot be solved: {_first_line(e)}") from None
         result = self._restart_isam(graph, estimate)
         self._solver_index = {t: int(i) for t, i in zip(tags, result.getNewFactorsIndices())}
@@ -369,7 +370,7 @@ class PoseGraph:
     # ------------------------------------------------------------------------------- reading
 
     def _current_pose(self, kf_id: int) -> gtsam.Pose3:
-        if self._estimate is not None and kf_id in self._in_solver:
+        if self._estimate is not None and kf_id in self._in_solver and self._estimate.exists(self._key(kf_id)):
             return self._estimate.atPose3(self._key(kf_id))
         return gtsam.Pose3(self._initial[kf_id])
 
@@ -393,9 +394,9 @@ class PoseGraph:
         kf_id = self._require(kf_id, "marginal_covariance")
         if frame not in ("base", "map"):
             raise PoseGraphError(f"frame {frame!r}: expected 'base' or 'map'")
-        if kf_id not in self._in_solver or self._pending:
-            raise PoseGraphError(f"keyframe {kf_id}: no marginal until optimise() has taken in every factor "
-                                 f"and some factor constrains this keyframe")
+        if kf_id not in self._in_solver or self._pending or self._isam_broken:
+            raise PoseGraphError(f"keyframe {kf_id}: no marginal until optimise() has taken in and solved every "
+                                 f"factor and some factor constrains this keyframe")
         try:
             cov = to_gtsam_cov(self._isam.marginalCovariance(self._key(kf_id)))
         except RuntimeError as e:
