@@ -21,7 +21,10 @@ ground truth re-expressed for it (poses of the frames kept, in the variant's bas
 * ``sway``: the rig pitching ±SWAY_DEG about its baseline, one swing every SWAY_PERIOD frames (a
   hand-held rig, a robot on rough ground).  Both images are warped by K·Rₓᵀ·K⁻¹ (a rotation about the
   baseline keeps a rectified pair rectified, so the warp is exact) and lose the rows the warp can leave
-  black (a 1241×294 camera).
+  black along the top and bottom edges (a 1241×294 camera; a few black pixels remain in the corners,
+  at most 15 a row).  The rig pivots about the left camera, so base_link (1.65 m below it on KITTI)
+  swings ±9 cm fore and aft with it: a level-base assumption would be wrong here, as it would be for a
+  hand-held rig.
 """
 from __future__ import annotations
 

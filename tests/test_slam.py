@@ -303,3 +303,25 @@ def test_a_slow_camera_s_next_frame_does_not_restart_the_map():
         assert est.status.startswith("initialised") == (k == 0), est.status
     stamps, _ = loc.trajectory()
     assert loc.map_restarts == 0 and stamps[0] == 0 and len(stamps) == 3   # it starts with the first frame
+
+
+@pytest.mark.parametrize("second, restarts", [
+    ((1, 0.5), 0),          # the next frame of a 2 frames/s camera: kept
+    ((2, 0.5), 1),          # a frame skipped between: as late as it looks
+    ((1, 5.0), 1),          # the next frame after a 5 s stall
+    ((0, 0.5), 1),          # a restarted camera's seq 0 again (a new stamp: not a republication)
+], ids=["next frame", "frame skipped", "stalled", "camera restarted"])
+def test_the_core_tells_the_localiser_which_population_is_the_next_frame(second, restarts):
+    from common import messages as m
+    from common.slam.core import LocaliserCore
+    from tests.test_relocalise import CALIB, corridor, population
+    rng = np.random.default_rng(3)
+    world = corridor(rng)
+    core = LocaliserCore(LocaliserConfig(odometry="visual", first_fix_gap_s=0.3))
+    core.on_calibration(m.calibration_to_msg(CALIB, 1, 1))
+    T0, T1 = planar_pose(0.0, 0.0, 0.0), planar_pose(0.3, 0.0, 0.0)
+    assert core.on_population(population(T0, world, rng, 0, 10**9, T0)).estimate.status == "initialised"
+    seq, t_s = second
+    out = core.on_population(population(T1, world, rng, seq, 10**9 + int(t_s * 1e9), T1))
+    assert out.estimate.status.startswith("initialised") == bool(restarts), out.estimate.status
+    assert core.localiser.map_restarts == restarts

@@ -479,7 +479,7 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
 
     def axis(half, step, halved=False):
         n = int(min(max_candidates_per_axis, 2 * np.ceil(half / step) + 1)) | 1
-        if halved and n > 5:   # about half as many, still spanning ±half with the centre's among them
+        if halved:   # about half as many, still spanning ±half with the centre's among them
             n = (n + 1) // 2 | 1
         return np.linspace(-half, half, n)
     xs = axis(0.1 * z_med, step_px * z_med / fx)

@@ -25,7 +25,8 @@ class LocaliserConfig:
     min_flies: int = 150                # fewer usable flies: odometry carries the pose
     min_generations: int = 100          # the map starts only from a population evolved this long
     first_fix_gap_s: float = 0.3        # motion unknown: a population later than this after the map's origin
-                                        # restarts the map from itself (the limit doubles at each restart)
+                                        # restarts the map from itself (the limit doubles at each restart) ...
+    max_frame_interval_s: float = 1.0   # ... unless it is of the next camera frame, at most this much later
     eps: float = 0.05                   # δ's ε (m)
     prior_sigma_xy: tuple = (0.01, 0.05)    # odometry prior σ = base + rate × metres since the last fix
     prior_sigma_yaw: tuple = (0.01, 0.08)   # ... for the heading (rad, rad/m)

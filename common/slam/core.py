@@ -9,8 +9,10 @@
 * ``on_population(FlyPopulation)`` → a :class:`LocaliserOutput` (``slam/pose`` PoseEstimate,
   ``slam/map_to_odom`` TransformMsg once the map exists — before its first keyframe there is no map
   frame to relate odom to —, the Estimate) or one with ``reason`` set: a population republished
-  for a frame already localised (same ``source_seq``) is skipped, one before any calibration or a
-  malformed one is refused.
+  for a frame already localised (same ``source_seq`` and stamp) is skipped, one before any calibration
+  or a malformed one is refused.  A population of the camera frame right after the last one localised
+  (``source_seq`` + 1, at most ``max_frame_interval_s`` later) is told to the localiser as such: its
+  first fix does not restart the map however slow the camera.
 * ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``trajectory()`` the trajectory so far (as the
   back-end now has it); ``save_map(path)`` writes map.mcap, ``initial_map`` starts from a saved one.
 
@@ -87,7 +89,8 @@ class LocaliserCore(LatchedInputs):
         self.archive_config = archive or ArchiveConfig()
         super().__init__(odometry if odometry is not None else PoseBuffer(maxlen=1000))
         self.localiser: FlyLocaliser | None = None
-        self._last_source_seq: int | None = None
+        self._last_source: tuple[int, int] | None = None      # (source_seq, stamp) of the last population
+        self._last_localised: tuple[int, int] | None = None   # ... and of the last one localised
         self.localised = 0              # populations localised so far
         self.relocalising = initial_map is not None and len(initial_map.keyframes) > 0
         self.relocaliser_config = relocaliser or RelocaliserConfig()
@@ -102,11 +105,21 @@ class LocaliserCore(LatchedInputs):
     def keyframes(self):
         return self.localiser.keyframes if self.localiser is not None else ()
 
+    def _is_next_frame(self, source: tuple[int, int]) -> bool:
+        """Whether (source_seq, stamp) is the camera frame right after the last one localised: the next
+        seq, and a gap a camera's frame interval can be (a longer one is a stall or a restart)."""
+        if self._last_localised is None:
+            return False
+        seq, stamp = self._last_localised
+        gap_s = (source[1] - stamp) * 1e-9
+        return source[0] == seq + 1 and 0.0 < gap_s <= self.config.max_frame_interval_s
+
     def on_population(self, pop: m.FlyPopulation) -> LocaliserOutput:
-        if pop.source_seq == self._last_source_seq:
+        source = (pop.source_seq, pop.header.stamp_ns)
+        if source == self._last_source:
             return LocaliserOutput(reason="republished")
-        next_frame = self._last_source_seq is not None and pop.source_seq == self._last_source_seq + 1
-        self._last_source_seq = pop.source_seq
+        self._last_source = source
+        next_frame = self._is_next_frame(source)
         if self.localiser is None:
             if self._calibration_msg is None:
                 return LocaliserOutput(reason="no calibration")
@@ -130,6 +143,7 @@ class LocaliserCore(LatchedInputs):
                              next_frame=next_frame)
         except LocaliserError as e:
             return LocaliserOutput(reason=f"bad population: {e}")
+        self._last_localised = source
         if est.keyframe_added:
             self._bound_map()
         p, q = pose_from_transform(est.T_map_odom)

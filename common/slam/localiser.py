@@ -506,8 +506,9 @@ class FlyLocaliser:
         ``generation``: the evolver's generation count; the map starts only from a population that has
         evolved ``min_generations``. ``image``: the grey left image the flies were evaluated on; with it
         the pose is tracked on the flies' neighbourhoods (against the tracking reference view).
-        ``next_frame``: this population is of the camera frame right after the previous population's
-        (no frame was skipped between them)."""
+        ``next_frame``: this population is of the camera frame right after the previous one (no frame
+        skipped, no stall: LocaliserCore decides); then a first fix is tried however long after the
+        map's origin it comes, since no population could have come sooner (see _first_fix_too_late)."""
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
             if T_odom_base.shape != (4, 4):
