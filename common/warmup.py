@@ -117,10 +117,11 @@ def _exercise() -> None:
                 planner.path_from(x, y)
                 frames += 1
     # Photometric tracking (the localiser's with images): float64 flies, float32 pyramids.
-    from common.registration.photometric import align_flies, pyramid
+    from common.registration.photometric import align_flies, coarse_candidates, pyramid
     grey = img.left if img.left.ndim == 2 else img.left.mean(axis=2).astype(np.uint8)
     flies = np.array(ev.positions, np.float64)
     align_flies(flies, np.ones(len(flies)), pyramid(grey, 2), pyramid(grey, 2), cal.K_rectified, min_flies=1)
+    coarse_candidates(flies, np.ones(len(flies)), pyramid(grey, 2), pyramid(grey, 2), cal.K_rectified)
     # Both fitness kernels (the evolver picks one by measured cost), on writable and read-only flies.
     for parallel in (True, False):
         image_fitness(ev.frame, cal, ev.positions, parallel=parallel)

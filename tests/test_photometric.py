@@ -250,3 +250,33 @@ def test_best_alignment_prefers_the_first_start_unless_another_clearly_fits_bett
     monkeypatch.setattr(tracking, "align_flies", lambda *a, **k: next(fits))
     best = tracking.best_alignment(None, None, None, None, K, [np.eye(4)] * len(results), min_inliers=0.5)
     assert best.T[0, 0] == chosen + 1
+
+
+def test_the_lattice_kernel_scores_as_the_plain_numpy_sum():
+    """_lattice_scores (one numba pass) against the score written out in numpy: bilinear 3×3
+    neighbourhoods, zero-mean, mean |difference| truncated at the cap, weighted sum; flies behind the
+    camera or off the image count the cap."""
+    from scipy.ndimage import map_coordinates
+    from common.registration.photometric import _SCORE_CAP, PATTERN, _lattice_scores
+    rng = np.random.default_rng(5)
+    img = pyramid(render(make_transform(np.eye(3), [0.2, 0.0, 0.5])), 3)[-1]
+    fx = fy = F / 4
+    cx, cy = (K[0, 2] + 0.5) / 4 - 0.5, (K[1, 2] + 0.5) / 4 - 0.5
+    Q = flies_on_the_plane(300)
+    Q[:5, 2] = -1.0                                            # behind the camera
+    ref = rng.normal(0, 10, (len(Q), 9)).astype(np.float32)
+    ref[5:40, ::2] += 60.0                                     # residuals past the cap
+    w = rng.uniform(0.5, 1.0, len(Q))
+    X, Z, yaw = rng.uniform(-1, 1, 40), rng.uniform(-2, 2, 40), rng.uniform(-0.1, 0.1, 40)
+    got = _lattice_scores(img, ref, w, Q, X, Z, np.cos(yaw), np.sin(yaw), fx, fy, cx, cy)
+    H, W_ = img.shape
+    for m in range(len(X)):
+        c, s = np.cos(yaw[m]), np.sin(yaw[m])
+        px, pz = c * Q[:, 0] + s * Q[:, 2] + X[m], -s * Q[:, 0] + c * Q[:, 2] + Z[m]
+        u, v = fx * px / np.where(pz > 0.1, pz, 1) + cx, fy * Q[:, 1] / np.where(pz > 0.1, pz, 1) + cy
+        inside = (pz > 0.1) & (u >= 1) & (u < W_ - 2) & (v >= 1) & (v < H - 2)
+        cur = map_coordinates(img.astype(np.float64), [v[:, None] + PATTERN[:, 1], u[:, None] + PATTERN[:, 0]],
+                              order=1, mode="nearest")
+        r = np.abs(cur - cur.mean(1, keepdims=True) - ref).mean(1)
+        want = np.sum(w * np.where(inside, np.minimum(r, _SCORE_CAP), _SCORE_CAP))
+        assert got[m] == pytest.approx(want, rel=1e-5)

@@ -493,23 +493,16 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     ref = _sample(Iref, u0[:, None] + PATTERN[None, :, 0], v0[:, None] + PATTERN[None, :, 1])
     ref = ref - ref.mean(1, keepdims=True)
     Pc = P @ T0[:3, :3].T + T0[:3, 3]                                  # flies under the centre motion
+    ref_ok = np.isfinite(ref).all(1)
+    ref = np.ascontiguousarray(np.where(ref_ok[:, None], ref, 0.0), np.float32)
+    w_ok = np.where(ref_ok, w, 0.0)        # a fly without a reference neighbourhood scores the cap
+    cap = float(w[~ref_ok].sum()) * _SCORE_CAP
+    Inew32 = np.ascontiguousarray(Inew, np.float32)
     scores = []
     for pitch in pitches:               # one (x, z, yaw) lattice per pitch (a loop of ≤ 11, not over flies)
-        Rp = _rot_x(pitch)
-        Q = Pc @ Rp.T
+        Q = np.ascontiguousarray(Pc @ _rot_x(pitch).T)
         # candidate m: rot_y(yaw) · rot_x(pitch) · p + (x, 0, z)
-        px = c[:, None] * Q[None, :, 0] + sn[:, None] * Q[None, :, 2] + X[:, None]
-        pz = -sn[:, None] * Q[None, :, 0] + c[:, None] * Q[None, :, 2] + Z[:, None]
-        py = np.broadcast_to(Q[None, :, 1], px.shape)
-        front = pz > 0.1
-        pz = np.where(front, pz, 1.0)
-        u = fx * px / pz + cx
-        v = fy * py / pz + cy
-        cur = _sample(Inew, u[:, :, None] + PATTERN[None, None, :, 0], v[:, :, None] + PATTERN[None, None, :, 1])
-        r = np.abs(cur - cur.mean(2, keepdims=True) - ref[None])      # (M, N, 9)
-        valid = front & np.isfinite(r).all(2) & np.isfinite(ref).all(1)[None]
-        per_fly = np.where(valid, np.minimum(np.nan_to_num(r.mean(2), nan=0.0), 20.0), 20.0)   # truncated
-        scores.append((per_fly * w[None]).sum(1) / w.sum())
+        scores.append((_lattice_scores(Inew32, ref, w_ok, Q, X, Z, c, sn, fx, fy, cx, cy) + cap) / w.sum())
     score = np.stack(scores, axis=1).ravel()                           # (x, z, yaw, pitch) order
     grid = score.reshape(len(xs), len(zs), len(yaws), len(pitches))
     minima = np.flatnonzero(grid.ravel() <= minimum_filter(grid, size=3, mode="nearest").ravel())
@@ -521,6 +514,56 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
         D[:3, 3] = (X[m], 0.0, Z[m])
         starts.append(D @ T0)
     return starts
+
+
+_SCORE_CAP = 20.0   # a fly's lattice residual is truncated here (grey levels), and is this when not seen
+
+
+@njit(cache=True)
+def _lattice_scores(img, ref, w, Q, X, Z, c, sn, fx, fy, cx, cy):
+    """Σ weight × truncated mean |zero-mean 3×3 neighbourhood − ref| over the flies Q (N, 3), for each
+    candidate m: rot_y(yaw_m)·q + (X_m, 0, Z_m) (c, sn its yaw's cos, sin), projected with fx, fy, cx,
+    cy.  A fly behind the camera or whose neighbourhood leaves the image counts _SCORE_CAP.  One pass,
+    no M×N temporaries (the numpy version built several of 1.3 M samples per pitch)."""
+    H, W = img.shape
+    M, N = X.shape[0], Q.shape[0]
+    out = np.zeros(M)
+    patch = np.empty(9)
+    for m in range(M):
+        acc = 0.0
+        for n in range(N):
+            if w[n] == 0.0:
+                continue
+            qx, qy, qz = Q[n, 0], Q[n, 1], Q[n, 2]
+            px = c[m] * qx + sn[m] * qz + X[m]
+            pz = -sn[m] * qx + c[m] * qz + Z[m]
+            if pz <= 0.1:
+                acc += w[n] * _SCORE_CAP
+                continue
+            u = fx * px / pz + cx
+            v = fy * qy / pz + cy
+            if not (u >= 1.0 and u < W - 2.0 and v >= 1.0 and v < H - 2.0):
+                acc += w[n] * _SCORE_CAP
+                continue
+            mean = 0.0
+            k = 0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    x, y = u + dx, v + dy
+                    x0, y0 = int(x), int(y)
+                    ax, ay = x - x0, y - y0
+                    val = ((1 - ay) * ((1 - ax) * img[y0, x0] + ax * img[y0, x0 + 1])
+                           + ay * ((1 - ax) * img[y0 + 1, x0] + ax * img[y0 + 1, x0 + 1]))
+                    patch[k] = val
+                    mean += val
+                    k += 1
+            mean /= 9.0
+            r = 0.0
+            for k in range(9):
+                r += abs(patch[k] - mean - ref[n, k])
+            acc += w[n] * min(r / 9.0, _SCORE_CAP)
+        out[m] = acc
+    return out
 
 
 def _rot_x(angle: float) -> np.ndarray:
