@@ -60,6 +60,8 @@ class LockstepResult:
     frames: int = 0
     seconds: float = 0.0
     keyframes: int = 0
+    graph_failed_updates: int = 0     # iSAM2 updates that raised and were solved again (common.slam.posegraph)
+    graph_failures: int = 0           # keyframes the pose graph could not solve at all
     localiser: LocaliserCore | None = None     # the core at the end (its map, e.g. to save)
 
     @property
@@ -128,6 +130,9 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
                 break
     res.seconds = time.perf_counter() - t0
     res.keyframes = len(localiser.keyframes)
+    if localiser.localiser is not None:
+        res.graph_failed_updates = localiser.localiser.graph_failed_updates
+        res.graph_failures = localiser.localiser.graph_failures
     res.localiser = localiser
     return res
 

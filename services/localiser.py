@@ -232,6 +232,9 @@ def body(node, args) -> int:
             map_changed |= out.estimate.keyframe_added
             if tum is not None and core.keyframes:     # the trajectory starts with the map
                 tum.append(out.pose.header.stamp_ns, out.estimate.T_map_base)
+        if core.localiser is not None:      # the back-end's trouble, as counters in the heartbeat
+            node.rates["graph_failed_updates"] = float(core.localiser.graph_failed_updates)
+            node.rates["graph_unsolved_keyframes"] = float(core.localiser.graph_failures)
         if core.localiser is not None and core.localiser.map_restarts > restarts_seen:
             # the map started again (common.slam.localiser._first_fix_too_late): its first origin
             # leaves the trajectory file and the map now, not at the next periodic rewrite

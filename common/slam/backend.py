@@ -197,6 +197,7 @@ class KeyframeGraph:
             kf = self.archive.pop(k)
             kf.points, kf.points_map = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
             kf.fitness = np.zeros(0, np.float32)
+        graph.failed_updates = self.graph.failed_updates
         self.graph = graph        # optimised with the next keyframe (whose correction the localiser applies)
         self.dropped += len(drop)
 

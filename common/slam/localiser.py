@@ -113,7 +113,7 @@ class FlyLocaliser:
         self._turned_since_fix = 0.0
         self._fast_turn_since_fix = 0.0  # signed odometry yaw (rad) turned faster than max_turn_rate_radps
         self._last_fix_stamp: int | None = None
-        self.graph_failures = 0          # pose-graph solves that failed (the front end carried on)
+        self.graph_failures = 0          # keyframes the pose graph could not solve (their front-end poses stand)
         self.slips_undone = 0            # fixes that took the prediction without a too-fast odometry turn
         self.map_restarts = 0            # one-keyframe maps restarted (see _first_fix_too_late)
         self.map_loaded = False      # started from a saved map (load_map): never restarted
@@ -288,6 +288,11 @@ class FlyLocaliser:
 
     # ------------------------------------------------------------------------------ back-end
     @property
+    def graph_failed_updates(self) -> int:
+        """iSAM2 updates that raised and were solved again from the whole graph (see common.slam.posegraph)."""
+        return self.backend.graph.failed_updates if self.backend is not None else 0
+
+    @property
     def loop_closures(self) -> list[LoopClosure]:
         return self.backend.loops if self.backend is not None else []
 
@@ -315,10 +320,10 @@ class FlyLocaliser:
         try:
             return self.backend.optimise(newest_id)
         except PoseGraphError:
-            self.graph_failures += 1
             try:
                 return self.backend.optimise(newest_id, batch=True)
             except PoseGraphError:
+                self.graph_failures += 1
                 return np.eye(4)
 
     def _close_loop(self, old: Keyframe, kf: Keyframe) -> int | None:

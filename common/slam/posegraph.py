@@ -158,6 +158,7 @@ class PoseGraph:
         self._factorization = "CHOLESKY"
         self._isam = self._new_isam()
         self._isam_broken = False      # an update raised: iSAM2's state is unknown until a batch rebuild
+        self.failed_updates = 0        # iSAM2 updates that raised (each followed by a rebuild, by QR)
 
     # ------------------------------------------------------------------------------- building
 
@@ -307,6 +308,7 @@ class PoseGraph:
                 error = new_error
         except RuntimeError as e:        # GTSAM's IndeterminantLinearSystem and friends
             self._isam_broken = True
+            self.failed_updates += 1
             self._in_solver = in_solver_before   # the new keyframes keep their initial poses
             if self._factorization != "QR":    # Cholesky's failure: solve it all again, by QR
                 self._factorization = "QR"
@@ -336,6 +338,7 @@ class PoseGraph:
                 result = self._isam.update(graph, estimate)
             except RuntimeError as e:
                 self._isam_broken = True
+                self.failed_updates += 1
                 if self._factorization == "QR":
                     raise PoseGraphError(f"pose graph cannot be solved: {_first_line(e)}") from None
                 self._factorization = "QR"

@@ -131,7 +131,8 @@ def main(argv=None) -> int:
     write_tum(out / "estimated.tum", final_stamps, np.asarray(final_poses))
     metrics = {"recording": str(args.recording), "frames": result.frames,
                "frames_per_s": round(result.frames_per_s, 3), "registered_fraction": round(result.registered_fraction, 3),
-               "keyframes": result.keyframes}
+               "keyframes": result.keyframes, "pose_graph_failed_updates": result.graph_failed_updates,
+               "pose_graph_unsolved_keyframes": result.graph_failures}
     odom_in_map = []
     with_odom = [i for i, T in enumerate(result.odometry) if T is not None]
     have_odom = len(with_odom) > 0.9 * result.frames
@@ -157,6 +158,9 @@ def main(argv=None) -> int:
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     print(f"frames {result.frames} at {result.frames_per_s:.2f} frames/s, registered {100 * result.registered_fraction:.0f} %, "
           f"{result.keyframes} keyframes")
+    if result.graph_failed_updates or result.graph_failures:
+        print(f"pose graph: {result.graph_failed_updates} iSAM2 update(s) failed and were solved again from the "
+              f"whole graph; {result.graph_failures} keyframe(s) kept the front end's pose (graph unsolvable)")
     for name in ("flyslam", "flyslam_online", "odometry_only"):
         if name in metrics:
             r = metrics[name]
