@@ -352,3 +352,53 @@ def test_an_update_that_raises_does_not_break_the_next_optimise(failing_call):
     assert np.abs(positions(failing) - positions(reference)).max() < 1e-3
     assert np.linalg.norm(failing.pose(n - 1)[:2, 3]) < 0.05
     np.testing.assert_allclose(failing.marginal_covariance(3), reference.marginal_covariance(3), rtol=0.05)
+
+
+def test_a_failure_by_qr_waits_for_a_rebuild_and_a_failed_batch_leaves_isam2_as_it_was(monkeypatch):
+    """Once on QR an update that raises is an error (nothing left to fall back to): the marginals wait,
+    and the next optimise rebuilds from the whole graph.  A batch whose Levenberg-Marquardt raises never
+    touched iSAM2, so the next incremental optimise stays incremental."""
+    import common.slam.posegraph as pg
+    truth, odometry, dead = square_loop()
+    g, reference = loop_graph(truth, odometry, dead), loop_graph(truth, odometry, dead)
+    for graph in (g, reference):
+        graph.optimise()
+        graph.add_registration(0, 8, invert(truth[0]) @ truth[8], REG_COV)
+    g._factorization = "QR"
+    real = g._isam
+
+    class Failing:
+        """iSAM2 whose refining update (after it took the new factor in) raises."""
+        def update(self, *args):
+            result = real.update(*args)
+            if not args:
+                raise RuntimeError("Indeterminant linear system detected while working near variable")
+            return result
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    g._isam = Failing()
+    with pytest.raises(PoseGraphError, match="cannot be solved"):
+        g.optimise()
+    with pytest.raises(PoseGraphError, match="no marginal"):       # not from the half-updated iSAM2
+        g.marginal_covariance(3)
+    g.optimise()
+    reference.optimise()
+    assert np.abs(positions(g) - positions(reference)).max() < 1e-3
+    assert g.marginal_covariance(3)[0, 0] > 0
+
+    solves = []
+
+    def refusing(*args):
+        solves.append(args)
+        raise RuntimeError("Indeterminant linear system detected while working near variable")
+
+    monkeypatch.setattr(pg.gtsam, "LevenbergMarquardtOptimizer", refusing)
+    with pytest.raises(PoseGraphError, match="cannot be solved"):
+        g.optimise(batch=True)
+    for graph in (g, reference):
+        graph.add_registration(0, len(truth) - 1, np.eye(4), REG_COV)
+        graph.optimise()
+    assert len(solves) == 1                   # the incremental optimise did not go batch
+    assert np.abs(positions(g) - positions(reference)).max() < 1e-3

@@ -496,13 +496,14 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     ref_ok = np.isfinite(ref).all(1)
     ref = np.ascontiguousarray(np.where(ref_ok[:, None], ref, 0.0), np.float32)
     w_ok = np.where(ref_ok, w, 0.0)        # a fly without a reference neighbourhood scores the cap
-    cap = float(w[~ref_ok].sum()) * _SCORE_CAP
+    cap = float(w[~ref_ok].sum()) * _SCORE_CAP    # the same for every candidate: keeps the score a mean
     Inew32 = np.ascontiguousarray(Inew, np.float32)
     scores = []
     for pitch in pitches:               # one (x, z, yaw) lattice per pitch (a loop of ≤ 11, not over flies)
         Q = np.ascontiguousarray(Pc @ _rot_x(pitch).T)
         # candidate m: rot_y(yaw) · rot_x(pitch) · p + (x, 0, z)
-        scores.append((_lattice_scores(Inew32, ref, w_ok, Q, X, Z, c, sn, fx, fy, cx, cy) + cap) / w.sum())
+        scores.append((_lattice_scores(Inew32, ref, w_ok, Q, X, Z, c, sn, float(fx), float(fy), float(cx),
+                                       float(cy)) + cap) / w.sum())
     score = np.stack(scores, axis=1).ravel()                           # (x, z, yaw, pitch) order
     grid = score.reshape(len(xs), len(zs), len(yaws), len(pitches))
     minima = np.flatnonzero(grid.ravel() <= minimum_filter(grid, size=3, mode="nearest").ravel())
@@ -561,7 +562,8 @@ def _lattice_scores(img, ref, w, Q, X, Z, c, sn, fx, fy, cx, cy):
             r = 0.0
             for k in range(9):
                 r += abs(patch[k] - mean - ref[n, k])
-            acc += w[n] * min(r / 9.0, _SCORE_CAP)
+            r /= 9.0
+            acc += w[n] * (r if r < _SCORE_CAP else _SCORE_CAP)     # (NaN from the image: the cap)
         out[m] = acc
     return out
 

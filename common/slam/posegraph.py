@@ -47,6 +47,7 @@ DEFAULT_K = {"cauchy": 3.0, "huber": 3.0}
 # A weak level-robot prior: 1 cm on z, ~0.3° on roll and pitch, nothing on x, y, yaw.
 PLANAR_SIGMAS = (0.01, 0.005, 0.005)
 _FREE_SIGMA = 1e4
+_GTSAM_ERRORS = (RuntimeError, IndexError, ValueError)   # what GTSAM's bindings raise for a bad update
 
 
 class PoseGraphError(ValueError):
@@ -277,7 +278,7 @@ class PoseGraph:
         Incremental: the new keyframes that some factor constrains and their factors go into iSAM2,
         then update steps repeat until the error changes by less than ``tol`` (relative).  ``batch``:
         Levenberg-Marquardt over the whole graph from the current estimate, and iSAM2 restarts there;
-        also what an incremental call does after an optimise that raised."""
+        also what an incremental call does after an iSAM2 update that raised."""
         if not self._has_prior:
             raise PoseGraphError("the graph has no prior: add_prior on one keyframe to fix the map frame")
         if batch or self._isam_broken:
@@ -306,7 +307,7 @@ class PoseGraph:
                     error = new_error
                     break
                 error = new_error
-        except RuntimeError as e:        # GTSAM's IndeterminantLinearSystem and friends
+        except _GTSAM_ERRORS as e:       # IndeterminantLinearSystem and friends
             self._isam_broken = True
             self.failed_updates += 1
             self._in_solver = in_solver_before   # the new keyframes keep their initial poses
@@ -336,7 +337,7 @@ class PoseGraph:
             self._isam = self._new_isam()
             try:
                 result = self._isam.update(graph, estimate)
-            except RuntimeError as e:
+            except _GTSAM_ERRORS as e:
                 self._isam_broken = True
                 self.failed_updates += 1
                 if self._factorization == "QR":
@@ -358,7 +359,7 @@ class PoseGraph:
         params.setMaxIterations(int(max_iterations))
         try:
             estimate = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        except RuntimeError as e:        # (iSAM2 untouched: as healthy, or as broken, as it was)
+        except _GTSAM_ERRORS as e:        # (iSAM2 untouched: as healthy, or as broken, as it was)
             raise PoseGraphError(f"pose graph cannot be solved: {_first_line(e)}") from None
         result = self._restart_isam(graph, estimate)
         self._solver_index = {t: int(i) for t, i in zip(tags, result.getNewFactorsIndices())}
@@ -384,7 +385,8 @@ class PoseGraph:
         return len(self._initial)
 
     def pose(self, kf_id: int) -> np.ndarray:
-        """T_map_base of a keyframe: optimised, or its initial pose if no factor has constrained it yet."""
+        """T_map_base of a keyframe: optimised, or its initial pose if no factor has constrained it yet
+        (or the optimise that took its first factors in raised)."""
         return self._current_pose(self._require(kf_id, "pose")).matrix()
 
     def poses(self) -> dict[int, np.ndarray]:
@@ -402,7 +404,7 @@ class PoseGraph:
                                  f"factor and some factor constrains this keyframe")
         try:
             cov = to_gtsam_cov(self._isam.marginalCovariance(self._key(kf_id)))
-        except RuntimeError as e:
+        except _GTSAM_ERRORS as e:
             raise PoseGraphError(f"marginal covariance of keyframe {kf_id}: {_first_line(e)}") from None
         if frame == "map":
             R = self._current_pose(kf_id).rotation().matrix()
