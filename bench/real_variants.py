@@ -34,7 +34,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from common.geometry import invert
+from common.geometry import invert, make_transform, rot_x
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
@@ -63,18 +63,11 @@ def _sway_margin(calib) -> int:
                             np.stack([u, np.full_like(u, calib.height - 1), np.ones_like(u)])], axis=1)
     inward = 0.0
     for angle in (np.radians(SWAY_DEG), -np.radians(SWAY_DEG)):
-        p = K @ _pitch(angle)[:3, :3].T @ np.linalg.inv(K) @ edges
+        p = K @ rot_x(angle).T @ np.linalg.inv(K) @ edges
         v = p[1] / p[2]
         inward = max(inward, v[:33].max(), (calib.height - 1 - v[33:]).max())
     return int(np.ceil(inward)) + 1
 
-
-def _pitch(angle: float) -> np.ndarray:
-    """4×4 rotation by ``angle`` about the optical x axis."""
-    c, s = np.cos(angle), np.sin(angle)
-    T = np.eye(4)
-    T[1:3, 1:3] = [[c, -s], [s, c]]
-    return T
 
 
 def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
@@ -110,7 +103,7 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
     # truth: T_map_base of the frames kept, re-based on the first kept frame and on the new mounting
     T_map_cam = ds.truth_poses[index] @ ds.calibration.T_base_camera
     if name == "sway":
-        T_map_cam = np.stack([T @ _pitch(sway_pitch(int(k))) for T, k in zip(T_map_cam, index)])
+        T_map_cam = np.stack([T @ make_transform(rot_x(sway_pitch(int(k)))) for T, k in zip(T_map_cam, index)])
     T_cam0_cam = invert(T_map_cam[0]) @ T_map_cam
     truth = calib.T_base_camera @ T_cam0_cam @ invert(calib.T_base_camera)
     stamps = ds.stamps_ns[0] + np.arange(len(index), dtype=np.int64) * step_ns * stride
@@ -132,7 +125,7 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
         if name == "gain":
             right = np.clip(right.astype(np.float32) * 0.8 + 10.0, 0, 255).astype(np.uint8)
         if name == "sway":   # a point X in the clip's camera is Rₓᵀ·X in the swayed one
-            R = _pitch(sway_pitch(int(index[i])))[:3, :3]
+            R = rot_x(sway_pitch(int(index[i])))
             warps = [_rectified_K(calib, side, 0) @ R.T @ np.linalg.inv(_rectified_K(calib, side, y0))
                      for side in ("left", "right")]
             left, right = (cv2.warpPerspective(img, H, (calib.width, calib.height), flags=cv2.INTER_LINEAR)

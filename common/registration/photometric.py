@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 from scipy.ndimage import minimum_filter
 
-from common.geometry import orthonormalised, so3_exp
+from common.geometry import orthonormalised, rot_x, rot_y, so3_exp
 
 # Gauss-Newton stops when a step moves a fly at the flies' median depth by less than this, in pixels of
 # the level: at full resolution a hundredth of a pixel; a coarse level only has to bring the next one
@@ -456,8 +456,8 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     The lattice spans what keeps the views overlapping — ±0.1 × the flies' median depth sideways,
     ±0.25 × it forwards, ±5° of yaw and of pitch — with steps that move a fly ~1.5 coarse pixels (about
     half as many yaws and pitches: a lateral step mostly looks like a yaw, a vertical image shift is what
-    a pitch makes and the alignment's basin holds a few coarse pixels of it).  Without pitch, a rig that
-    pitched 1.6° between its first two frames (KITTI 00 swaying ±3°) started from a sideways step."""
+    a pitch makes and the alignment's basin holds a few coarse pixels of it).  A pitching rig (hand-held,
+    rough ground) needs the pitch axis: without it the best start is a sideways step with a turn."""
     P = np.asarray(points_ref, np.float64)
     w = np.asarray(weights, np.float64)
     ok = np.isfinite(P).all(1) & (P[:, 2] > 0.1) & np.isfinite(w) & (w > 0)
@@ -500,7 +500,7 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     Inew32 = np.ascontiguousarray(Inew, np.float32)
     scores = []
     for pitch in pitches:               # one (x, z, yaw) lattice per pitch (a loop of ≤ 11, not over flies)
-        Q = np.ascontiguousarray(Pc @ _rot_x(pitch).T)
+        Q = np.ascontiguousarray(Pc @ rot_x(pitch).T)
         # candidate m: rot_y(yaw) · rot_x(pitch) · p + (x, 0, z)
         scores.append((_lattice_scores(Inew32, ref, w_ok, Q, X, Z, c, sn, float(fx), float(fy), float(cx),
                                        float(cy)) + cap) / w.sum())
@@ -511,7 +511,7 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
     for best in minima[np.argsort(score[minima], kind="stable")][:max(1, count)]:
         m, k = divmod(int(best), len(pitches))
         D = np.eye(4)
-        D[:3, :3] = np.array([[c[m], 0, sn[m]], [0, 1, 0], [-sn[m], 0, c[m]]]) @ _rot_x(pitches[k])
+        D[:3, :3] = rot_y(Y[m]) @ rot_x(pitches[k])
         D[:3, 3] = (X[m], 0.0, Z[m])
         starts.append(D @ T0)
     return starts
@@ -524,8 +524,8 @@ _SCORE_CAP = 20.0   # a fly's lattice residual is truncated here (grey levels), 
 def _lattice_scores(img, ref, w, Q, X, Z, c, sn, fx, fy, cx, cy):
     """Σ weight × truncated mean |zero-mean 3×3 neighbourhood − ref| over the flies Q (N, 3), for each
     candidate m: rot_y(yaw_m)·q + (X_m, 0, Z_m) (c, sn its yaw's cos, sin), projected with fx, fy, cx,
-    cy.  A fly behind the camera or whose neighbourhood leaves the image counts _SCORE_CAP.  One pass,
-    no M×N temporaries (the numpy version built several of 1.3 M samples per pitch)."""
+    cy.  A fly behind the camera or whose neighbourhood leaves the image counts _SCORE_CAP.  One pass
+    over candidates and flies, no M×N×9 temporaries."""
     H, W = img.shape
     M, N = X.shape[0], Q.shape[0]
     out = np.zeros(M)
@@ -567,8 +567,3 @@ def _lattice_scores(img, ref, w, Q, X, Z, c, sn, fx, fy, cx, cy):
         out[m] = acc
     return out
 
-
-def _rot_x(angle: float) -> np.ndarray:
-    """3×3 rotation by ``angle`` about the x axis (optical frame: a pitch)."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])

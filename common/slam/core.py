@@ -10,9 +10,9 @@
   ``slam/map_to_odom`` TransformMsg once the map exists — before its first keyframe there is no map
   frame to relate odom to —, the Estimate) or one with ``reason`` set: a population republished
   for the frame of the last population received (same ``source_seq`` and stamp) is skipped, one
-  before any calibration or a malformed one is refused.  A population of the camera frame right after the last one localised
-  (``source_seq`` + 1, at most ``max_frame_interval_s`` later) is told to the localiser as such: its
-  first fix does not restart the map however slow the camera.
+  before any calibration or a malformed one is refused.  A population of the camera frame right after
+  the last one localised (``source_seq`` + 1, at most ``max_frame_interval_s`` later) is told to the
+  localiser as such: its first fix does not restart the map however slow the camera.
 * ``map_message(stamp_ns)`` is the ``slam/map`` FlyMap; ``trajectory()`` the trajectory so far (as the
   back-end now has it); ``save_map(path)`` writes map.mcap, ``initial_map`` starts from a saved one.
 

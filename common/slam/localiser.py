@@ -679,8 +679,7 @@ class FlyLocaliser:
         photometric.coarse_candidates): a live start whose first frame was slow put a car's first fix
         at the edge of that reach, where it sometimes settled metres short.  Later populations come a
         frame apart, and the doubling lets a machine slower than the limit still start.  A camera
-        slower than the limit (KITTI at every third frame: 0.3 s) lost its first frame to a restart,
-        and its ATE doubled (0.317 → 0.611 m)."""
+        slower than the limit would only lose its first frame to a restart."""
         if (self.config.odometry != "visual" or source != "none" or len(self.keyframes) != 1
                 or len(self._history) != 1 or self.map_loaded):
             return ""   # (wheels: a population without odometry is a gap in it, not an unknown motion)

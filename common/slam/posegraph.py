@@ -25,7 +25,7 @@ or the consistent factors look like the outliers.
 Optimisation is incremental (iSAM2, a Gauss-Newton step per update, repeated until the error settles)
 or a batch Levenberg-Marquardt over the whole graph, after which iSAM2 restarts from the batch answer.
 An update that raises may leave iSAM2 half-changed, so the next optimise rebuilds it from the whole
-graph (batch).  iSAM2 factorises by Cholesky until that fails, then by QR (10-20 % slower on KITTI): a
+graph (batch).  iSAM2 factorises by Cholesky until that fails, then by QR (slower, so only then): a
 confident registration tens of metres long beside soft visual odometry made Cholesky report an
 indeterminate system that QR and Levenberg-Marquardt solve.
 A keyframe enters the optimiser with its first factor.  A factor can be removed by its handle; keyframes
