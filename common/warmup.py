@@ -62,9 +62,11 @@ def callees(found: dict[str, object]) -> set[str]:
     """Kernels named inside another kernel's body: numba compiles them with their caller (and loads
     them from the cache with it, without listing their signatures on their own dispatcher)."""
     names = set()
-    for key, d in found.items():
-        mod = key.rsplit(".", 1)[0]
-        names.update(f"{mod}.{n}" for n in d.py_func.__code__.co_names)
+    for d in found.values():
+        for n in d.py_func.__code__.co_names:
+            callee = getattr(d.py_func.__globals__.get(n), "py_func", None)   # imported kernels too
+            if callee is not None:
+                names.add(f"{callee.__module__}.{callee.__name__}")
     return names
 
 

@@ -6,9 +6,8 @@ uncertainty is isotropic-ish — so that a Gaussian step has the same meaning ne
 All operators are one numba loop, ``make_offspring``, driven by random numbers drawn by the caller's numpy
 Generator (so a seeded evolver is reproducible).  The small public wrappers (``mutate``, ``crossover2``,
 ``crossover3``, ``exchange_depth``) call that same loop, so what the tests check is what the evolver runs.
-Inside the loops the draws come from numba's own generator, re-seeded at every call from the caller's
-Generator — other njit code in the process that relies on numba's global generator state will see it
-re-seeded.
+Inside the loops the draws come from ``common.fly.fastrng``, seeded at every call from the caller's
+Generator (numba's global generator is left alone).
 """
 from __future__ import annotations
 
@@ -16,6 +15,7 @@ import numba
 import numpy as np
 
 from common.camera import StereoCalibration
+from common.fly.fastrng import below, new_state, next_u64, normal, uniform
 
 MUTATION, CROSSOVER2, CROSSOVER3, IMMIGRANT, EXCHANGE = 0, 1, 2, 3, 4
 
@@ -71,9 +71,9 @@ def _mate_at(p, n, reach, r):
 
 
 @numba.njit(cache=True)
-def _local_mate(p, n, reach):
+def _local_mate(p, n, reach, rng):
     """A random neighbour of ``p`` in the cell-ordered population: ±1…±reach places."""
-    return _mate_at(p, n, reach, np.random.randint(0, 2 * reach))
+    return _mate_at(p, n, reach, below(rng, 2 * reach))
 
 
 @numba.njit(cache=True)
@@ -87,20 +87,23 @@ def _mate_bits(reach, extra):
 
 
 @numba.njit(cache=True)
-def _fittest_local_mate(p, m1, n, reach, best_of, bits, fit):
+def _fittest_local_mate(p, m1, n, reach, best_of, bits, fit, rng):
     """The fittest of ``m1`` and ``best_of`` − 1 more random neighbours of ``p``.  With ``bits`` > 0
     (see _mate_bits) the extra neighbours come from the bit fields of one draw: the same distribution as
     one draw each, at a fraction of the cost (this is most of what the exchange operator spends)."""
     if bits > 0 and best_of > 1:
-        word = np.random.randint(0, 1 << (bits * (best_of - 1)))
+        word = np.int64(next_u64(rng) >> np.uint64(2))     # 62 random bits
         mask = (1 << bits) - 1
+        best = fit[m1]
         for j in range(best_of - 1):
             q = _mate_at(p, n, reach, (word >> (bits * j)) & mask)
-            if fit[q] > fit[m1]:
-                m1 = q
+            fq = fit[q]
+            better = fq > best         # selects, not branches: the comparisons are coin flips
+            m1 = q if better else m1
+            best = fq if better else best
         return m1
     for _ in range(best_of - 1):
-        q = _local_mate(p, n, reach)
+        q = _local_mate(p, n, reach, rng)
         if fit[q] > fit[m1]:
             m1 = q
     return m1
@@ -115,26 +118,26 @@ def plan_batch(cum_rates, shared, tournament_size, pool, own_for_local, seed, op
     whole-population batch), else the fittest by ``shared`` of ``tournament_size`` random flies, or with
     ``tournament_size`` 0 a uniform draw from ``pool`` (elitist selection).  The sort (a stable counting
     sort) puts children next to their parents' image neighbours: the batch is evaluated in image order."""
-    np.random.seed(seed)
+    rng = new_state(seed)
     m, n = ops.shape[0], shared.shape[0]
     raw_ops = np.empty(m, np.int64)
     raw_parents = np.empty(m, np.int64)
     counts = np.zeros(n + 1, np.int64)
     for i in range(m):
-        r = np.random.random()
+        r = uniform(rng)
         op = 0
         while op < cum_rates.shape[0] - 1 and r >= cum_rates[op]:
             op += 1
         if own_for_local and (op == MUTATION or op == EXCHANGE):
             p = i
         elif tournament_size > 0:
-            p = np.random.randint(0, n)
+            p = below(rng, n)
             for _ in range(tournament_size - 1):
-                q = np.random.randint(0, n)
+                q = below(rng, n)
                 if shared[q] > shared[p]:
                     p = q
         else:
-            p = pool[np.random.randint(0, pool.shape[0])]
+            p = pool[below(rng, pool.shape[0])]
         raw_ops[i] = op
         raw_parents[i] = p
         counts[p + 1] += 1
@@ -163,9 +166,10 @@ def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigra
       parents' triangle, hence their plane;
     * IMMIGRANT: the next row of ``immigrants`` (drawn like the initialisation).
     With ``mate_reach`` > 0 mates are drawn among population neighbours (±mate_reach places), else they
-    are ``mates1``/``mates2``.  Random numbers come from numba's generator seeded with ``seed``.
+    are ``mates1``/``mates2``.  Random numbers come from ``fastrng`` seeded with ``seed``.
     """
-    np.random.seed(seed)
+    rng = new_state(seed)
+    spare = np.nan
     n = pos.shape[0]
     k = 0
     bits = _mate_bits(mate_reach, exchange_best_of - 1) if mate_reach > 0 else 0
@@ -177,33 +181,37 @@ def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigra
         m2 = 0
         if op != MUTATION and op != IMMIGRANT:
             if mate_reach > 0:
-                m1 = _local_mate(p, n, mate_reach)
+                m1 = _local_mate(p, n, mate_reach, rng)
                 if op == CROSSOVER3:
-                    m2 = _local_mate(p, n, mate_reach)
+                    m2 = _local_mate(p, n, mate_reach, rng)
             else:
                 m1 = mates1[i]
                 m2 = mates2[i]
         if op == MUTATION or op == EXCHANGE:
             u, v, d = _uvd(pos[p, 0], pos[p, 1], pos[p, 2], cam)
             if op == MUTATION:
-                u += np.random.normal(0.0, 1.0) * sigma_px
-                v += np.random.normal(0.0, 1.0) * sigma_px
-                d += np.random.normal(0.0, 1.0) * parent_sigma[i]
+                gu, spare = normal(rng, spare)
+                gv, spare = normal(rng, spare)
+                gd, spare = normal(rng, spare)
+                u += gu * sigma_px
+                v += gv * sigma_px
+                d += gd * parent_sigma[i]
             else:
                 if mate_reach > 0:
-                    m1 = _fittest_local_mate(p, m1, n, mate_reach, exchange_best_of, bits, fit)
+                    m1 = _fittest_local_mate(p, m1, n, mate_reach, exchange_best_of, bits, fit, rng)
                 _, _, d = _uvd(pos[m1, 0], pos[m1, 1], pos[m1, 2], cam)
-                d += np.random.normal(0.0, 1.0) * exchange_sigma
+                gd, spare = normal(rng, spare)
+                d += gd * exchange_sigma
             d = min(max(d, d_lo), d_hi)
             _to_point(u, v, d, cam, out_child, i)
         elif op == CROSSOVER2:
-            lam = np.random.random()
+            lam = uniform(rng)
             for a in range(3):
                 out_child[i, a] = lam * pos[p, a] + (1.0 - lam) * pos[m1, a]
         elif op == CROSSOVER3:
-            e0 = -np.log(1.0 - np.random.random())
-            e1 = -np.log(1.0 - np.random.random())
-            e2 = -np.log(1.0 - np.random.random())
+            e0 = -np.log(1.0 - uniform(rng))
+            e1 = -np.log(1.0 - uniform(rng))
+            e2 = -np.log(1.0 - uniform(rng))
             s = e0 + e1 + e2
             if not s > 0.0:
                 e0, e1, e2, s = 1.0, 1.0, 1.0, 3.0
@@ -282,12 +290,12 @@ def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child
 
     The victim is the parent for mutation and exchange children when ``crowding`` (deterministic
     crowding), else the worst (by shared fitness) of ``n_candidates`` random flies (reverse tournament,
-    numba's generator seeded with ``seed``).
+    ``fastrng`` seeded with ``seed``).
     A child replaces its victim when its shared fitness is at least the victim's; immigrants always do.
     With ``adaptive``, a mutation that wins multiplies its step by ``step_up`` and one that loses
     multiplies its parent's by ``step_down`` (a per-fly success rule).  Returns the number inserted.
     """
-    np.random.seed(seed)
+    rng = new_state(seed)
     n = pos.shape[0]
     inserted = 0
     for i in range(ops.shape[0]):
@@ -307,7 +315,7 @@ def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child
             victim = 0
             best = np.inf
             for _ in range(n_candidates):
-                c = np.random.randint(0, n)
+                c = below(rng, n)
                 s = _shared(fit[c], counts[cells[c]] if cells[c] >= 0 else 0, expected, strength)
                 if s < best:
                     best = s
