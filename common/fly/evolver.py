@@ -40,7 +40,7 @@ from common.fly.config import EvolverConfig
 from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
                                   camera_vector, cell_order, insert_offspring, make_offspring,
-                                  plan_batch, project_uvd)
+                                  permuted, plan_batch, project_uvd)
 from common.fly.sampling import disparity_bounds, sample_flies
 from common.fly.threads import KernelChooser
 
@@ -217,8 +217,8 @@ class FlyEvolver:
             u, v, _ = project_uvd(self.calib, self._pos)
             cells = self.sharing.cells(u, v)
         order = cell_order(cells, self.sharing.cols * self.sharing.rows)
-        self._pos, self._fit, self._sigma_d = self._pos[order], self._fit[order], self._sigma_d[order]
-        self._cells = cells[order]
+        self._pos, self._fit, self._sigma_d, self._cells = permuted(order, self._pos, self._fit, self._sigma_d,
+                                                                    cells)
         self.sharing.update(self._cells)
 
     # ------------------------------------------------------------------------------- evolution

@@ -370,6 +370,26 @@ def cell_order(cells, n_cells):
     return order
 
 
+@numba.njit(cache=True)
+def permuted(order, pos, fit, sigma, cells):
+    """(pos, fit, sigma, cells) rearranged by ``order`` in one pass (numpy's four fancy-index copies
+    cost several times more, once per generation)."""
+    n = order.shape[0]
+    pos2 = np.empty((n, 3), pos.dtype)
+    fit2 = np.empty(n, fit.dtype)
+    sigma2 = np.empty(n, sigma.dtype)
+    cells2 = np.empty(n, cells.dtype)
+    for k in range(n):
+        i = order[k]
+        pos2[k, 0] = pos[i, 0]
+        pos2[k, 1] = pos[i, 1]
+        pos2[k, 2] = pos[i, 2]
+        fit2[k] = fit[i]
+        sigma2[k] = sigma[i]
+        cells2[k] = cells[i]
+    return pos2, fit2, sigma2, cells2
+
+
 class SharingGrid:
     """2-D fitness sharing over square cells of the left image.
 
