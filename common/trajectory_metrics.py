@@ -91,3 +91,30 @@ def evaluate(est_stamps, est_poses, gt_stamps, gt_poses, tolerance_ns: int = 20_
         ate_pct_of_path=100 * ate / path if path > 0 else float("nan"),
         rpe_trans_mean_m=float(np.mean(rel_t)), rpe_rot_mean_deg=float(np.rad2deg(np.mean(rel_r))),
         drift_pct=100 * final_err / path if path > 0 else float("nan"), final_error_m=final_err)
+
+
+def factor_nees(edges, keyframe_stamps: dict, truth_stamps, truth, planar: bool,
+                tolerance_ns: int = 20_000_000) -> dict:
+    """How far a pose graph's factors can be trusted: per factor kind, the NEES against the truth.
+
+    For each between-factor i→j (priors skipped) whose two keyframes have a truth pose within
+    ``tolerance_ns``: e = log(T_true_ij⁻¹ · T_i_j) in frame j, flyslam order (x, y, z, rx, ry, rz), and
+    NEES = eᵀ Σ⁻¹ e under the factor's own covariance, over the axes the graph estimates (x, y, yaw for a
+    planar graph, all six otherwise). A consistent covariance gives a mean NEES near ``dof``: well above,
+    the factors claim more than they know; well below, less.  Returns {kind: {factors, nees_mean,
+    nees_median, dof}}; kinds with no factor next to the truth are left out.
+    """
+    axes = [0, 1, 5] if planar else list(range(6))
+    ids = list(keyframe_stamps)
+    i_kf, j_truth = associate([keyframe_stamps[k] for k in ids], truth_stamps, tolerance_ns)
+    truth_of = {ids[a]: np.asarray(truth[b]) for a, b in zip(i_kf, j_truth)}
+    nees: dict[str, list[float]] = {}
+    for edge in edges:
+        if edge.i == edge.j or edge.i not in truth_of or edge.j not in truth_of:
+            continue
+        E = invert(invert(truth_of[edge.i]) @ truth_of[edge.j]) @ np.asarray(edge.T_i_j)
+        e = np.r_[E[:3, 3], so3_log(E[:3, :3])][axes]
+        cov = np.asarray(edge.cov)[np.ix_(axes, axes)]
+        nees.setdefault(edge.kind, []).append(float(e @ np.linalg.solve(cov, e)))
+    return {kind: {"factors": len(v), "nees_mean": round(float(np.mean(v)), 3),
+                   "nees_median": round(float(np.median(v)), 3), "dof": len(axes)} for kind, v in nees.items()}

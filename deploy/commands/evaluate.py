@@ -23,7 +23,7 @@ from common.fly import EvolverConfig
 from common.lockstep import run_lockstep
 from common.recording import RecordingError, RecordingReader
 from common.trajectory import write_tum
-from common.trajectory_metrics import TrajectoryMismatch, evaluate
+from common.trajectory_metrics import TrajectoryMismatch, evaluate, factor_nees
 from deploy.progress import Progress
 
 
@@ -154,6 +154,11 @@ def main(argv=None) -> int:
                     metrics["odometry_only"]["ate_rmse_m"] / max(metrics["flyslam"]["ate_rmse_m"], 1e-9), 2)
         except TrajectoryMismatch as e:
             metrics["error"] = str(e)
+        backend = result.localiser.localiser.backend if result.localiser.localiser is not None else None
+        if backend is not None:
+            metrics["factor_nees"] = factor_nees(
+                backend.graph.edges().values(), {k: kf.stamp_ns for k, kf in backend.archive.items()},
+                result.truth_stamps, result.truth, planar=backend.planar)
         plot(out / "trajectories.png", result, odom_in_map, final_stamps, final_poses)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     print(f"frames {result.frames} at {result.frames_per_s:.2f} frames/s, registered {100 * result.registered_fraction:.0f} %, "
@@ -166,6 +171,9 @@ def main(argv=None) -> int:
             r = metrics[name]
             print(f"{name:14s} ATE {r['ate_rmse_m']:.3f} m ({r['ate_pct_of_path']:.2f} % of {r['path_length_m']:.1f} m)  "
                   f"RPE {r['rpe_trans_mean_m'] * 1000:.1f} mm / {r['rpe_rot_mean_deg']:.2f}°  drift {r['drift_pct']:.2f} %")
+    for kind, r in metrics.get("factor_nees", {}).items():
+        print(f"pose graph {kind} factors against the truth: NEES {r['nees_mean']:.2f} (median {r['nees_median']:.2f}, "
+              f"{r['factors']} factors; {r['dof']} if their covariances are right)")
     print(f"wrote {out}/metrics.json, estimated.tum" + (", trajectories.png" if result.truth else ""))
     return 0
 
