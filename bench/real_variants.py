@@ -8,6 +8,10 @@ ground truth re-expressed for it (poses of the frames kept, in the variant's bas
 * ``stride2`` / ``stride3``: every 2nd / 3rd frame, at the clip's frame interval × 2 / × 3 (KITTI 00:
   1.7 / 2.6 m a frame, a car at 60 / 90 km/h);
 * ``reverse``: the frames backwards (the camera drives backwards through the same street);
+* ``outback``: there and back again: the frames forwards, the last one held for OUTBACK_STOP frames (the
+  car stops), then backwards to the first (it reverses down the same street): the way back revisits
+  every place of the way out, so loop closure on real images is exercised, and the end should meet
+  the start;
 * ``half``: images and intrinsics at half resolution (a 620×188 camera);
 * ``crop640``: the central 640 columns (a narrower field of view: 48° instead of 82°);
 * ``mount0``: the rig's ``T_base_camera`` without its height (base_link at the camera, as a
@@ -38,8 +42,11 @@ from common.geometry import invert, make_transform, rot_x
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
-VARIANTS = ("stride2", "stride3", "reverse", "half", "crop640", "mount0", "noisy", "gain", "exposure", "sway")
+VARIANTS = ("stride2", "stride3", "reverse", "outback", "half", "crop640", "mount0", "noisy", "gain", "exposure", "sway")
 SWAY_DEG, SWAY_PERIOD = 3.0, 12
+
+
+OUTBACK_STOP = 5
 
 
 def sway_pitch(frame: int) -> float:
@@ -82,6 +89,8 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
     step_ns = int(np.median(np.diff(ds.stamps_ns))) if n > 1 else 100_000_000
     stride = int(name[6:]) if name.startswith("stride") else 1
     index = index[::stride] if stride > 1 else index[::-1] if name == "reverse" else index
+    if name == "outback":
+        index = np.r_[index, np.full(OUTBACK_STOP, n - 1), index[-2::-1]]
     scale = 0.5 if name == "half" else 1.0
     x0 = (calib.width - 640) // 2 if name == "crop640" else 0
     if scale != 1.0:
