@@ -172,18 +172,18 @@ def _min_half_window_mean(sq, h):
 
 
 @numba.njit(cache=True)
-def _minus(img, mean, remove):
-    """float32 ``img − mean`` (both uint8, same shape), or just ``img`` as float32."""
+def _minus(img, mean, remove, out):
+    """``out`` (float32, img's shape) = ``img − mean`` (both uint8, same shape), or just ``img``."""
     a = img.ravel()
     b = mean.ravel()
-    out = np.empty(a.size, np.float32)
+    o = out.ravel()
     if remove:
         for i in range(a.size):
-            out[i] = np.float32(a[i]) - np.float32(b[i])
+            o[i] = np.float32(a[i]) - np.float32(b[i])
     else:
         for i in range(a.size):
-            out[i] = np.float32(a[i])
-    return out.reshape(img.shape)
+            o[i] = np.float32(a[i])
+    return out
 
 
 @numba.njit(cache=True)
@@ -232,8 +232,12 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
             raise ImageError(f"left image must be H×W mono or H×W×3 RGB, got shape {la.shape}")
         bl = cv2.blur(la3, k, borderType=cv2.BORDER_REPLICATE).reshape(la3.shape) if mean_removal_px else la3
         br = cv2.blur(ra3, k, borderType=cv2.BORDER_REPLICATE).reshape(ra3.shape) if mean_removal_px else ra3
-        L = _minus(np.ascontiguousarray(la3), np.ascontiguousarray(bl), bool(mean_removal_px))
-        R = _minus(np.ascontiguousarray(ra3), np.ascontiguousarray(br), bool(mean_removal_px))
+        # outputs allocated by numpy, which asks the kernel for huge pages for large arrays: a new
+        # frame's images then cost a few page faults instead of thousands
+        L = _minus(np.ascontiguousarray(la3), np.ascontiguousarray(bl), bool(mean_removal_px),
+                   np.empty(la3.shape, np.float32))
+        R = _minus(np.ascontiguousarray(ra3), np.ascontiguousarray(br), bool(mean_removal_px),
+                   np.empty(ra3.shape, np.float32))
         grey = _grey(np.ascontiguousarray(la3))
         C = L.shape[2]
     else:
