@@ -15,6 +15,8 @@ writes its first frame before its first odometry message).
 from __future__ import annotations
 
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from itertools import chain
 from typing import Callable, Iterable, Iterator
@@ -25,6 +27,7 @@ from common import messages as m
 from common.fly import EvolverConfig
 from common.fly.core import EvolverCore
 from common.geometry import planar_pose
+from common.images import COMPRESSED_ENCODINGS, frame_images
 from common.pose_buffer import PoseBuffer
 from common.recording import RecordedMessage
 from common.slam import LocaliserConfig
@@ -32,6 +35,40 @@ from common.slam.core import LocaliserCore
 
 
 WHEELS_LOOKAHEAD_NS = 1_000_000_000
+_STREAMS = ("stereo/calibration", "odom/wheels", "truth/pose", "stereo/frame")
+
+
+def _decoded(messages: Iterator[RecordedMessage], ahead: int = 2) -> Iterator[tuple[str, object]]:
+    """(stream, decoded message or None) for each recorded message, stereo frames already decompressed
+    to raw images by a worker thread up to ``ahead`` frames in advance: OpenCV's decoders release the
+    GIL, so the next frames decode on the core the evolver's serial loops leave idle. Order is kept."""
+    def decode(rec: RecordedMessage):
+        try:
+            msg = m.decode(rec.payload)
+        except m.DecodeError:
+            return None
+        if isinstance(msg, m.StereoFrame) and msg.encoding in COMPRESSED_ENCODINGS:
+            try:
+                left, right = frame_images(msg)
+            except m.DecodeError:
+                return msg          # EvolverCore reports it as it would live
+            msg = replace(msg, left=left, right=right, encoding="mono8" if left.ndim == 2 else "rgb8")
+        return msg
+
+    pending: deque = deque()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-decode") as pool:
+        for rec in messages:
+            stream = rec.key.split("/", 1)[-1]
+            if stream not in _STREAMS:
+                continue
+            pending.append((stream, pool.submit(decode, rec) if stream == "stereo/frame" else decode(rec)))
+            frames_queued = sum(1 for s, _ in pending if s == "stereo/frame")
+            while pending and (frames_queued > ahead or pending[0][0] != "stereo/frame"):
+                stream, item = pending.popleft()
+                frames_queued -= stream == "stereo/frame"
+                yield stream, item.result() if isinstance(item, Future) else item
+        for stream, item in pending:
+            yield stream, item.result() if isinstance(item, Future) else item
 
 
 def _wheels_ahead(messages: Iterator[RecordedMessage]) -> tuple[bool, list[RecordedMessage]]:
@@ -88,13 +125,8 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
     calibration = None
     first_frame = True
     t0 = time.perf_counter()
-    for rec in chain(ahead, messages):
-        stream = rec.key.split("/", 1)[-1]
-        if stream not in ("stereo/calibration", "odom/wheels", "truth/pose", "stereo/frame"):
-            continue
-        try:
-            msg = m.decode(rec.payload)
-        except m.DecodeError:
+    for stream, msg in _decoded(chain(ahead, messages)):
+        if msg is None:
             continue
         if stream == "stereo/calibration":
             evolver.on_calibration(msg)

@@ -31,3 +31,26 @@ def test_recording_without_wheels_runs_visual_only():
     res = run_lockstep(no_wheels, generations_per_frame=5, evolver_config=SMALL, max_frames=6)
     assert res.localiser.config.odometry == "visual"
     assert res.frames == 6 and all(T is None for T in res.odometry)
+
+
+def test_frames_decoded_ahead_keep_the_recordings_order_and_images():
+    from common import messages as m
+    from common.images import frame_images
+    from common.lockstep import _decoded
+    from common.recording import RecordedMessage
+
+    recs = list(_first(40))
+    corrupt = m.decode(next(r for r in recs if r.key.endswith("stereo/frame")).payload)
+    corrupt.left = corrupt.left[:10].copy()          # JPEG bytes cut short: they do not decode
+    recs.insert(5, RecordedMessage(recs[4].key.split("/", 1)[0] + "/stereo/frame", "", 0, 0, m.encode(corrupt)))
+    recs.insert(7, RecordedMessage("robot/odom/wheels", "", 0, 0, b"\x93not msgpack"))
+    wanted = [r for r in recs if r.key.split("/", 1)[1] in ("stereo/calibration", "odom/wheels", "truth/pose",
+                                                              "stereo/frame")]
+    got = list(_decoded(iter(recs)))
+    assert [s for s, _ in got] == [r.key.split("/", 1)[1] for r in wanted]
+    assert got[[i for i, r in enumerate(wanted) if r.payload == b"\x93not msgpack"][0]][1] is None
+    for (stream, msg), rec in zip(got, wanted):
+        if stream == "stereo/frame" and msg.encoding in ("rgb8", "mono8"):
+            left, right = frame_images(m.decode(rec.payload))
+            assert (msg.left == left).all() and (msg.right == right).all()
+    assert sum(1 for s, msg in got if s == "stereo/frame" and msg.encoding == "jpeg") == 1   # the corrupt one
