@@ -56,7 +56,8 @@ def _decoded(messages: Iterator[RecordedMessage], ahead: int = 2) -> Iterator[tu
         return msg
 
     pending: deque = deque()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-decode") as pool:
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-decode")
+    try:
         for rec in messages:
             stream = rec.key.split("/", 1)[-1]
             if stream not in _STREAMS:
@@ -69,6 +70,8 @@ def _decoded(messages: Iterator[RecordedMessage], ahead: int = 2) -> Iterator[tu
                 yield stream, item.result() if isinstance(item, Future) else item
         for stream, item in pending:
             yield stream, item.result() if isinstance(item, Future) else item
+    finally:        # a caller that stops early (max_frames) does not wait for frames it will not use
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _wheels_ahead(messages: Iterator[RecordedMessage]) -> tuple[bool, list[RecordedMessage]]:

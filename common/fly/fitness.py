@@ -176,7 +176,7 @@ def _minus(img, mean, remove, out):
     """``out`` (float32, img's shape) = ``img − mean`` (both uint8, same shape), or just ``img``."""
     a = img.ravel()
     b = mean.ravel()
-    o = out.ravel()
+    o = out.reshape(-1)     # a view (ravel would copy a non-contiguous ``out`` and drop the writes)
     if remove:
         for i in range(a.size):
             o[i] = np.float32(a[i]) - np.float32(b[i])

@@ -6,7 +6,7 @@ uncertainty is isotropic-ish — so that a Gaussian step has the same meaning ne
 All operators are one numba loop, ``make_offspring``, driven by random numbers drawn by the caller's numpy
 Generator (so a seeded evolver is reproducible).  The small public wrappers (``mutate``, ``crossover2``,
 ``crossover3``, ``exchange_depth``) call that same loop, so what the tests check is what the evolver runs.
-Inside the loops the draws come from ``common.fly.fastrng``, seeded at every call from the caller's
+Inside the loops the draws come from the splitmix64 generator below, seeded at every call from the caller's
 Generator (numba's global generator is left alone).
 """
 from __future__ import annotations
@@ -15,9 +15,74 @@ import numba
 import numpy as np
 
 from common.camera import StereoCalibration
-from common.fly.fastrng import below, new_state, next_u64, normal, uniform
 
 MUTATION, CROSSOVER2, CROSSOVER3, IMMIGRANT, EXCHANGE = 0, 1, 2, 3, 4
+
+
+# ---------------------------------------------------------------------------- random numbers
+# A splitmix64 generator (Steele, Lea & Flood 2014; the seeder of the xoshiro family: passes BigCrush)
+# on a one-word state array, seeded per call from the caller's Generator.  numba's own np.random
+# fetches its per-thread state on every draw, which made drawing cost as much as scoring.  It lives in
+# this module, not its own: numba's cache checks only the caller's source file, so kernels cached here
+# would keep an edited generator's old code.  ``uniform``: [0, 1), 53 bits; ``below(s, n)``: [0, n) for
+# 0 < n < 2³² (multiply-shift, bias below n / 2³²); ``normal_pair``: two independent standard normals,
+# which ``normal`` serves one at a time.
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31, _S11, _S32 = (np.uint64(k) for k in (30, 27, 31, 11, 32))
+
+
+@numba.njit(cache=True)
+def new_state(seed):
+    """A generator state (one uint64 word) for the kernels below, from a non-negative int64 seed."""
+    state = np.empty(1, np.uint64)
+    state[0] = np.uint64(seed)
+    return state
+
+
+@numba.njit(cache=True)
+def next_u64(state):
+    """The next 64 random bits (state advances by one step)."""
+    state[0] += _GOLDEN
+    z = state[0]
+    z = (z ^ (z >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@numba.njit(cache=True)
+def uniform(state):
+    """A float64 uniform on [0, 1)."""
+    return float(next_u64(state) >> _S11) * (1.0 / 9007199254740992.0)
+
+
+@numba.njit(cache=True)
+def below(state, n):
+    """An int64 uniform on [0, n), 0 < n < 2³²."""
+    return np.int64(((next_u64(state) >> _S32) * np.uint64(n)) >> _S32)
+
+
+@numba.njit(cache=True)
+def normal_pair(state):
+    """Two independent float64 standard normals (Marsaglia's polar method: one logarithm per pair)."""
+    while True:
+        x = 2.0 * uniform(state) - 1.0
+        y = 2.0 * uniform(state) - 1.0
+        s = x * x + y * y
+        if 0.0 < s < 1.0:
+            f = np.sqrt(-2.0 * np.log(s) / s)
+            return x * f, y * f
+
+
+@numba.njit(cache=True)
+def normal(state, spare):
+    """A float64 standard normal and the new ``spare``: a kernel keeps ``spare`` (start with NaN) between
+    calls so that each polar pair serves two draws."""
+    if spare == spare:                 # not NaN: the second half of the last pair
+        return spare, np.nan
+    z, spare = normal_pair(state)
+    return z, spare
 
 
 def camera_vector(calib: StereoCalibration) -> np.ndarray:
@@ -166,7 +231,7 @@ def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigra
       parents' triangle, hence their plane;
     * IMMIGRANT: the next row of ``immigrants`` (drawn like the initialisation).
     With ``mate_reach`` > 0 mates are drawn among population neighbours (±mate_reach places), else they
-    are ``mates1``/``mates2``.  Random numbers come from ``fastrng`` seeded with ``seed``.
+    are ``mates1``/``mates2``.  Random numbers come from the splitmix64 generator above, seeded with ``seed``.
     """
     rng = new_state(seed)
     spare = np.nan
@@ -290,7 +355,7 @@ def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child
 
     The victim is the parent for mutation and exchange children when ``crowding`` (deterministic
     crowding), else the worst (by shared fitness) of ``n_candidates`` random flies (reverse tournament,
-    ``fastrng`` seeded with ``seed``).
+    the splitmix64 generator above, seeded with ``seed``).
     A child replaces its victim when its shared fitness is at least the victim's; immigrants always do.
     With ``adaptive``, a mutation that wins multiplies its step by ``step_up`` and one that loses
     multiplies its parent's by ``step_down`` (a per-fly success rule).  Returns the number inserted.

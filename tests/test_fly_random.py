@@ -2,7 +2,7 @@
 import numba
 import numpy as np
 
-from common.fly.fastrng import below, new_state, normal, uniform
+from common.fly.operators import below, new_state, normal, uniform
 
 
 @numba.njit
