@@ -42,10 +42,9 @@ from common.geometry import invert, make_transform, rot_x
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
-VARIANTS = ("stride2", "stride3", "reverse", "outback", "half", "crop640", "mount0", "noisy", "gain", "exposure", "sway")
+VARIANTS = ("stride2", "stride3", "reverse", "outback", "half", "crop640", "mount0", "noisy", "gain", "exposure",
+            "sway")
 SWAY_DEG, SWAY_PERIOD = 3.0, 12
-
-
 OUTBACK_STOP = 5
 
 

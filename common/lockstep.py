@@ -56,14 +56,16 @@ def _decoded(messages: Iterator[RecordedMessage], ahead: int = 2) -> Iterator[tu
         return msg
 
     pending: deque = deque()
+    frames_queued = 0
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-decode")
     try:
         for rec in messages:
             stream = rec.key.split("/", 1)[-1]
             if stream not in _STREAMS:
                 continue
-            pending.append((stream, pool.submit(decode, rec) if stream == "stereo/frame" else decode(rec)))
-            frames_queued = sum(1 for s, _ in pending if s == "stereo/frame")
+            is_frame = stream == "stereo/frame"
+            pending.append((stream, pool.submit(decode, rec) if is_frame else decode(rec)))
+            frames_queued += is_frame
             while pending and (frames_queued > ahead or pending[0][0] != "stereo/frame"):
                 stream, item = pending.popleft()
                 frames_queued -= stream == "stereo/frame"
