@@ -116,58 +116,52 @@ def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.nd
     """
     if not min_half_window or n < 3:
         return cv2.boxFilter(sq_grad, cv2.CV_32F, (n, n), borderType=cv2.BORDER_REPLICATE)
-    return _min_half_window_mean(np.ascontiguousarray(sq_grad, dtype=np.float32), n // 2)
+    h = n // 2
+    sq = np.ascontiguousarray(sq_grad, dtype=np.float32)
+    padded = cv2.copyMakeBorder(sq, h, h, h, h, cv2.BORDER_REPLICATE)
+    return _min_half_window_mean(padded, h, np.empty(sq.shape, np.float32))
 
 
-@numba.njit(cache=True)
-def _min_half_window_mean(sq, h):
-    """Per pixel, the least mean of ``sq`` over the four (2h+1)×(h+1) half-windows, replicated borders.
-    Running sums, row by row (memory order): a handful of passes over the image whatever h is."""
-    H, W = sq.shape
-    cols = np.zeros((H, W), np.float32)   # vertical (2h+1)-sums
-    rows = np.empty((H, W), np.float32)   # horizontal (2h+1)-sums
-    for j in range(-h, h + 1):
-        src = min(max(j, 0), H - 1)
+@numba.njit(cache=True, fastmath=True)
+def _min_half_window_mean(padded, h, out):
+    """``out`` (H×W) = per pixel, the least mean of the image over its four (2h+1)×(h+1) half-windows;
+    ``padded`` is the image with h replicated pixels on every side.  Horizontal (2h+1)-sums of every
+    padded row first, then one pass down the rows with vertical running sums: every inner loop runs
+    along a row without a branch, so it vectorises."""
+    Hp, Wp = padded.shape
+    H, W = Hp - 2 * h, Wp - 2 * h
+    rows = np.zeros((Hp, W), np.float32)        # rows[y, x] = sum of padded[y, x .. x+2h]
+    for y in range(Hp):
+        r, p = rows[y], padded[y]
+        for i in range(2 * h + 1):
+            for x in range(W):
+                r[x] += p[x + i]
+    cols = np.zeros(Wp, np.float32)             # cols[x] = sum of padded[y .. y+2h, x] at output row y
+    top = np.zeros(W, np.float32)               # sum of rows[y .. y+h]: rows y-h..y of the image
+    bottom = np.zeros(W, np.float32)            # sum of rows[y+h .. y+2h]: rows y..y+h
+    for j in range(2 * h + 1):
+        for x in range(Wp):
+            cols[x] += padded[j, x]
+    for j in range(h + 1):
         for x in range(W):
-            cols[0, x] += sq[src, x]
-    for y in range(1, H):
-        a = min(y + h, H - 1)
-        r = max(y - h - 1, 0)
-        for x in range(W):
-            cols[y, x] = cols[y - 1, x] + sq[a, x] - sq[r, x]
-    for y in range(H):
-        acc = np.float32(0.0)
-        for i in range(-h, h + 1):
-            acc += sq[y, min(max(i, 0), W - 1)]
-        rows[y, 0] = acc
-        for x in range(1, W):
-            acc += sq[y, min(x + h, W - 1)] - sq[y, max(x - h - 1, 0)]
-            rows[y, x] = acc
-    out = np.empty((H, W), np.float32)
-    top = np.zeros(W, np.float32)       # running sums of `rows` over rows y-h..y (top half-window)
-    bottom = np.zeros(W, np.float32)    # ... and over rows y..y+h
-    for k in range(h + 1):
-        for x in range(W):
-            top[x] += rows[0, x]
-            bottom[x] += rows[min(k, H - 1), x]
+            top[x] += rows[j, x]
+            bottom[x] += rows[h + j, x]
+    side = np.empty(W + h, np.float32)          # side[x] = sum of cols[x .. x+h]: left at x, right at x+h
     scale = np.float32(1.0 / ((h + 1) * (2 * h + 1)))
     for y in range(H):
         if y > 0:
-            a = min(y + h, H - 1)
-            r = max(y - h - 1, 0)
+            for x in range(Wp):
+                cols[x] += padded[y + 2 * h, x] - padded[y - 1, x]
             for x in range(W):
-                top[x] += rows[y, x] - rows[r, x]
-                bottom[x] += rows[a, x] - rows[y - 1, x]
-        left = np.float32(0.0)
-        right = np.float32(0.0)
-        for k in range(h + 1):
-            left += cols[y, 0]
-            right += cols[y, min(k, W - 1)]
+                top[x] += rows[y + h, x] - rows[y - 1, x]
+                bottom[x] += rows[y + 2 * h, x] - rows[y + h - 1, x]
+        for x in range(W + h):
+            side[x] = cols[x]
+        for i in range(1, h + 1):
+            for x in range(W + h):
+                side[x] += cols[x + i]
         for x in range(W):
-            if x > 0:
-                left += cols[y, x] - cols[y, max(x - h - 1, 0)]
-                right += cols[y, min(x + h, W - 1)] - cols[y, x - 1]
-            out[y, x] = min(min(left, right), min(top[x], bottom[x])) * scale
+            out[y, x] = min(min(side[x], side[x + h]), min(top[x], bottom[x])) * scale
     return out
 
 
