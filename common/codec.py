@@ -351,8 +351,14 @@ def _decode_struct(obj: Any, cls, where: str):
 
 def peek_schema(payload: bytes) -> tuple[str, int]:
     """(schema, major) of a payload without validating the rest; raises DecodeError."""
+    return peek_envelope(payload)[:2]
+
+
+def peek_envelope(payload: bytes) -> tuple[str, int, Any]:
+    """(schema, major, stamp_ns as sent: unchecked, None if absent) of a payload in one parse, without
+    validating the rest (a recorder's per-message question); raises DecodeError."""
     obj = _unpack(payload)
-    return _envelope_schema(obj)
+    return (*_envelope_schema(obj), obj.get("stamp_ns"))
 
 
 def _unpack(payload: bytes) -> dict:

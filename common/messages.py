@@ -19,7 +19,7 @@ from common.codec import (  # noqa: F401  (re-exported: the codec's public names
     MAX_PAYLOAD_BYTES, MAX_STAMP_NS, MAX_WORLD_M, SCHEMAS, Array, DecodeError, Envelope, InvalidValue,
     MalformedPayload, Message, MissingField, ShapeMismatch, TooLarge, UnknownSchema, UnsupportedVersion,
     WrongType, _header_field, array_field, check_finite, check_positive, check_range, decode, encode,
-    encode_side, header, peek_schema, required, schema)
+    encode_side, header, peek_envelope, peek_schema, required, schema)
 
 # ------------------------------------------------------------------------------------- schemas
 # Frame names (REP-105 tree): map -> odom -> base_link -> camera_left -> camera_left_optical, ...

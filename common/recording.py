@@ -228,8 +228,7 @@ class RecordingWriter:
         whose envelope cannot be read is still recorded (schema 'unknown') so nothing is lost."""
         if schema is None or publish_time_ns is None:
             try:
-                obj_schema, _ = messages.peek_schema(payload)
-                stamp = _peek_stamp(payload)
+                obj_schema, _, stamp = messages.peek_envelope(payload)
             except messages.DecodeError:
                 obj_schema, stamp = "unknown", log_time_ns
             schema = schema or obj_schema
@@ -296,13 +295,6 @@ def open_segment(base: str | Path, **kwargs) -> RecordingWriter:
 def _storable(stamp) -> bool:
     """True when MCAP can store ``stamp`` (an unsigned 64-bit integer of nanoseconds)."""
     return isinstance(stamp, int) and not isinstance(stamp, bool) and 0 <= stamp < UINT64_LIMIT
-
-
-def _peek_stamp(payload: bytes):
-    """The envelope's stamp_ns as sent (may be anything: :func:`_storable` decides), None if absent."""
-    import msgpack
-    obj = msgpack.unpackb(payload, raw=False)
-    return obj.get("stamp_ns") if isinstance(obj, dict) else None
 
 
 # ------------------------------------------------------------------------------------- reading
