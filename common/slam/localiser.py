@@ -44,6 +44,7 @@ from common.slam.tracking import (SWITCH_RESIDUAL_RATIO, ReferenceView, photomet
 
 
 POOR_FIT_RATIO = 1.5   # a fix whose residual scale exceeds the recent median by this much is tried from other starts
+MIN_FITS_TO_JUDGE = 5  # recent fixes needed before a fit is called poor (or good enough to outrank the motion model)
 
 
 class LocaliserError(ValueError):
@@ -657,6 +658,12 @@ class FlyLocaliser:
         T_map_base = T_pred @ invert(planar_pose(*f_post))
         if new_pyramid is not None:       # δ found the basin; the neighbourhoods pin the pose in it
             fix, _ = self._photometric(new_pyramid, T_map_base, T_pred, source)
+            if fix is not None and source != "odometry" and self._poorly_fitted(fix):
+                # without wheels nothing else vouches for δ's basin, and a neighbourhood fit this poor
+                # says it is the wrong one (a car backing up after a stop: 4.6° of heading off)
+                return finish(T_pred, f"rejected: δ registration's neighbourhoods fit poorly (residual "
+                                      f"{fix.residual:.1f}, recent {np.median(self._fit_residuals):.1f})",
+                              False, cov_pred, res.delta)
             if fix is not None:
                 self._fit_residuals.append(fix.residual)
                 return fixed(fix.T_map_base, fix.covariance, res.delta, links)
@@ -715,7 +722,7 @@ class FlyLocaliser:
         minimum.  Its share of inliers cannot tell (the inlier threshold scales with the residual); on a
         hand-held rig that stopped to turn, the alignment from the constant-velocity prediction ended
         with σ̂ = 7.4 grey levels at 0.3 m / 4° off, against 2.7 from the true pose."""
-        if len(self._fit_residuals) < 5:
+        if len(self._fit_residuals) < MIN_FITS_TO_JUDGE:
             return False
         return fix.residual > POOR_FIT_RATIO * float(np.median(self._fit_residuals))
 
@@ -725,11 +732,15 @@ class FlyLocaliser:
         lattice search around the prediction —, or (None, why) when none gives one."""
         candidates, why = [fix] if fix is not None else [], ""
         if self._track.last_T_map_base is not None:
-            alt, why = self._photometric(new_pyramid, self._track.last_T_map_base, T_pred, source)
+            alt, why = self._photometric(new_pyramid, self._track.last_T_map_base, T_pred, source, any_fitted=True)
             candidates.append(alt)
-        alt, why_search = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)
+        alt, why_search = self._photometric(new_pyramid, T_pred, T_pred, source, search=True, any_fitted=True)
         candidates.append(alt)
         candidates = [f for f in candidates if f is not None]
+        # a fix beyond the motion model's limit only when nothing within it fits well
+        near = [f for f in candidates if not self._implausible(T_pred, f.T_map_base, source)]
+        if near and not all(self._poorly_fitted(f) for f in near):
+            candidates = near
         if not candidates:
             return None, why_search or why
         return min(candidates, key=lambda f: f.residual), ""
@@ -793,9 +804,12 @@ class FlyLocaliser:
             self._reference = held
         return fix
 
-    def _photometric(self, new_pyramid, T_start: np.ndarray, T_pred: np.ndarray, source: str, search: bool = False):
+    def _photometric(self, new_pyramid, T_start: np.ndarray, T_pred: np.ndarray, source: str, search: bool = False,
+                     any_fitted: bool = False):
         """(Fix, '') from aligning the tracking reference's flies into the new image from ``T_start``,
-        or (None, why); a fix implausibly far from the prediction is refused."""
+        or (None, why); a fix implausibly far from the prediction is refused, unless ``any_fitted`` and
+        it fits as well as the recent fixes do (within what the unknown-motion search spans): after a
+        stop, the constant-velocity model's limit refused the exact fix of a car backing up."""
         if self._reference is None:
             return None, "no reference view yet"
         c = self.config
@@ -804,6 +818,8 @@ class FlyLocaliser:
         if fix is None:
             return None, why
         why = self._implausible(T_pred, fix.T_map_base, source)
+        if why and any_fitted and not self._poorly_fitted(fix) and len(self._fit_residuals) >= MIN_FITS_TO_JUDGE:
+            why = self._implausible(T_pred, fix.T_map_base, "none")
         return (None, f"photometric fix {why}") if why else (fix, "")
 
     def _slip_hypothesis(self, new_pyramid, T_pred: np.ndarray, fix):
