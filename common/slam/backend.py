@@ -8,8 +8,9 @@ most redundant old ones and rebuilds the graph without them, so memory stays bou
 so does map.mcap, which saves the archive); after :meth:`KeyframeGraph.optimise` every archived
 keyframe's ``T_map_base`` and ``points_map`` are the graph's.  Factors (flyslam order, frame j, see posegraph):
 
-- odometry i→j: the relative pose the localiser estimated, σ growing with the distance driven and the
-  angle turned between them (the same model as the localiser's odometry prior);
+- odometry i→j: the relative pose the localiser estimated; on wheels σ grows with the distance driven
+  and the angle turned between them (the same model as the localiser's odometry prior); tracked by the
+  camera alone, σ comes from the camera (:func:`tracked_motion_cov`);
 - registration i→j: the fix's covariance (map-frame position rotated into keyframe j's base);
 - loop i→j: the planar registration's per-axis noise (``registration_sigma``), Cauchy-robust; a loop
   factor the optimised graph down-weights is removed again.
@@ -44,6 +45,19 @@ def odometry_sigmas(config, distance_m: float, turned_rad: float) -> tuple[float
     return sxy, syaw
 
 
+def tracked_motion_cov(T_i_j: np.ndarray, depth_m: float, fx: float, baseline_m: float,
+                       disparity_px: float) -> np.ndarray:
+    """6×6 covariance of the motion between two keyframes tracked by the camera alone, from what limits
+    it: the flies' depths, each known to ``disparity_px`` of disparity, scale the translation by a relative
+    error of disparity_px / (median disparity) = disparity_px · depth / (fx · baseline); the rotation is
+    known to disparity_px / fx.  Floored by _MIN_SIGMA.  The wheel model (odometry_sigmas) would give a
+    camera's roll and pitch the heading's loose σ, and loop factors could then bend the chain."""
+    relative = disparity_px * max(depth_m, 0.0) / (fx * baseline_m)
+    st = max(_MIN_SIGMA[0], float(np.linalg.norm(T_i_j[:3, 3])) * relative)
+    sr = max(_MIN_SIGMA[1], disparity_px / fx)
+    return np.diag([st, st, st, sr, sr, sr]) ** 2
+
+
 class KeyframeGraph:
     """Pose graph over the localiser's keyframes.  ``planar``: a wheeled robot (z, roll, pitch held)."""
 
@@ -56,9 +70,14 @@ class KeyframeGraph:
         self.loops: list[LoopClosure] = []
         self.dropped = 0                   # keyframes dropped by the size bound
         self._last_id: int | None = None
+        self.camera: tuple | None = None   # (fx, baseline, T_camera_base): odometry tracked by the camera alone
 
     # --------------------------------------------------------------------------- factors
-    def _odometry_cov(self, T_i_j: np.ndarray) -> np.ndarray:
+    def _odometry_cov(self, T_i_j: np.ndarray, kf=None) -> np.ndarray:
+        if self.camera is not None and kf is not None and len(kf.points):
+            fx, baseline, T_camera_base = self.camera
+            depth = float(np.median(transform_points(T_camera_base, kf.points.astype(np.float64))[:, 2]))
+            return tracked_motion_cov(T_i_j, depth, fx, baseline, self.config.tracked_disparity_px)
         sxy, syaw = odometry_sigmas(self.config, float(np.linalg.norm(T_i_j[:3, 3])),
                                     abs(planar_from_transform(T_i_j)[2]))
         if self.planar:
@@ -98,7 +117,7 @@ class KeyframeGraph:
         else:
             prev = self.archive[self._last_id]
             T = self._relative(prev.T_map_base, kf.T_map_base)
-            self.graph.add_odometry(prev.id, kf.id, T, self._odometry_cov(T))
+            self.graph.add_odometry(prev.id, kf.id, T, self._odometry_cov(T, kf))
             if fix_cov is not None:
                 cov = self._body_cov(fix_cov, kf.T_map_base)
                 for i in registered_to:

@@ -38,7 +38,7 @@ from common.registration.photometric import pyramid
 from common.registration.weights import visible_mask
 from common.slam.backend import KeyframeGraph, LoopClosure, odometry_sigmas
 from common.slam.config import LocaliserConfig
-from common.slam.posegraph import PoseGraphError, planar_covariance
+from common.slam.posegraph import UNCONSTRAINED_SIGMA, PoseGraphError, planar_covariance
 from common.slam.tracking import (SWITCH_RESIDUAL_RATIO, ReferenceView, photometric_fix, reference_view,
                                   reverse_motion)
 
@@ -146,6 +146,9 @@ class FlyLocaliser:
                                                   # (or the first, which defines the map)
         self.backend = (KeyframeGraph(self.config, planar=self.config.odometry == "wheels", archive=archive)
                         if self.config.pose_graph else None)
+        cal = self.calibration
+        if self.backend is not None and self.config.odometry == "visual" and cal is not None:
+            self.backend.camera = (cal.fx, cal.baseline, invert(self.T_base_camera))
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
@@ -379,9 +382,18 @@ class FlyLocaliser:
             return None
         sig = np.where(pinned, 1.0, np.asarray(c.registration_sigma, dtype=float))
         T_new = kf.T_map_base @ invert(planar_pose(*res.params))
-        handle = self.backend.add_loop(old, kf, T_new, planar_covariance(np.diag(sig ** 2)))
+        handle = self.backend.add_loop(old, kf, T_new, self._delta_covariance(np.diag(sig ** 2)))
         self.backend.loops.append(LoopClosure(old.id, kf.id, float(np.linalg.norm(res.params[:2])), True))
         return handle
+
+    def _delta_covariance(self, cov3: np.ndarray) -> np.ndarray:
+        """6×6 covariance of a δ registration, which measures x, y and yaw in the body plane: on wheels
+        the plane holds z, roll and pitch; without, δ says nothing of them (UNCONSTRAINED_SIGMA): the
+        1 mm / 1 mrad of a planar robot pinned a car's loop factors to its drifted height (z-scores
+        near 100 on the KITTI outback variant)."""
+        if self.config.odometry == "wheels":
+            return planar_covariance(cov3)
+        return planar_covariance(cov3, *UNCONSTRAINED_SIGMA)
 
     def _apply_correction(self, C: np.ndarray) -> None:
         """Move the state that lives in the map frame (map→odom, tracking, reference view) by C."""
@@ -674,7 +686,7 @@ class FlyLocaliser:
             why = self._implausible(T_pred, T_map_base, source)
             if why:
                 return finish(T_pred, f"rejected: δ registration {why}", False, cov_pred, res.delta)
-        return fixed(T_map_base, planar_covariance(cov3), res.delta, links)
+        return fixed(T_map_base, self._delta_covariance(cov3), res.delta, links)
 
     def _first_fix_too_late(self, stamp_ns: int, source: str) -> str:
         """Why the map restarts from this population ('' when it does not): no motion is known yet

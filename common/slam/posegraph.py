@@ -84,6 +84,10 @@ def to_gtsam_cov(cov6) -> np.ndarray:
     return c[np.ix_(_SWAP, _SWAP)]
 
 
+# z (m) and roll/pitch (rad) sigmas of a planar measurement in a 6-DoF graph: it says nothing of them
+UNCONSTRAINED_SIGMA = (10.0, 1.0)
+
+
 def planar_covariance(cov3, sigma_z: float = 1e-3, sigma_roll_pitch: float = 1e-3) -> np.ndarray:
     """6×6 flyslam-order covariance of a planar (x, y, yaw) measurement with a 3×3 covariance, the
     out-of-plane components (z, roll, pitch) given small independent sigmas."""
