@@ -61,7 +61,7 @@ def tracked_motion_cov(T_i_j: np.ndarray, depth_m: float, fx: float, baseline_m:
 class KeyframeGraph:
     """Pose graph over the localiser's keyframes.  ``planar``: a wheeled robot (z, roll, pitch held)."""
 
-    def __init__(self, config, planar: bool, archive: ArchiveConfig | None = None):
+    def __init__(self, config, planar: bool, archive: ArchiveConfig | None = None, camera: tuple | None = None):
         self.config = config
         self.planar = planar
         self.archive_config = archive or ArchiveConfig()
@@ -70,7 +70,7 @@ class KeyframeGraph:
         self.loops: list[LoopClosure] = []
         self.dropped = 0                   # keyframes dropped by the size bound
         self._last_id: int | None = None
-        self.camera: tuple | None = None   # (fx, baseline, T_camera_base): odometry tracked by the camera alone
+        self.camera = camera               # (fx, baseline, T_camera_base): odometry tracked by the camera alone
 
     # --------------------------------------------------------------------------- factors
     def _odometry_cov(self, T_i_j: np.ndarray, kf=None) -> np.ndarray:

@@ -144,11 +144,12 @@ class FlyLocaliser:
         self._fit_residuals: deque[float] = deque(maxlen=20)   # residual scales of the recent photometric fixes
         self._newest_view: tuple | None = None    # (T_map_cam, view flies) of the newest registered update
                                                   # (or the first, which defines the map)
-        self.backend = (KeyframeGraph(self.config, planar=self.config.odometry == "wheels", archive=archive)
-                        if self.config.pose_graph else None)
         cal = self.calibration
-        if self.backend is not None and self.config.odometry == "visual" and cal is not None:
-            self.backend.camera = (cal.fx, cal.baseline, invert(self.T_base_camera))
+        camera = ((cal.fx, cal.baseline, invert(self.T_base_camera))
+                  if self.config.odometry == "visual" and cal is not None else None)
+        self.backend = (KeyframeGraph(self.config, planar=self.config.odometry == "wheels", archive=archive,
+                                      camera=camera)
+                        if self.config.pose_graph else None)
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
@@ -388,9 +389,8 @@ class FlyLocaliser:
 
     def _delta_covariance(self, cov3: np.ndarray) -> np.ndarray:
         """6×6 covariance of a δ registration, which measures x, y and yaw in the body plane: on wheels
-        the plane holds z, roll and pitch; without, δ says nothing of them (UNCONSTRAINED_SIGMA): the
-        1 mm / 1 mrad of a planar robot pinned a car's loop factors to its drifted height (z-scores
-        near 100 on the KITTI outback variant)."""
+        the plane holds z, roll and pitch; without, δ says nothing of them (UNCONSTRAINED_SIGMA): a
+        planar robot's tight out-of-plane sigmas would pin a car's loop factors to its drifted height."""
         if self.config.odometry == "wheels":
             return planar_covariance(cov3)
         return planar_covariance(cov3, *UNCONSTRAINED_SIGMA)
@@ -672,7 +672,7 @@ class FlyLocaliser:
             fix, _ = self._photometric(new_pyramid, T_map_base, T_pred, source)
             if fix is not None and source != "odometry" and self._poorly_fitted(fix):
                 # without wheels nothing else vouches for δ's basin, and a neighbourhood fit this poor
-                # says it is the wrong one (a car backing up after a stop: 4.6° of heading off)
+                # says it is the wrong one (a car backing up after a stop)
                 return finish(T_pred, f"rejected: δ registration's neighbourhoods fit poorly (residual "
                                       f"{fix.residual:.1f}, recent {np.median(self._fit_residuals):.1f})",
                               False, cov_pred, res.delta)
@@ -737,6 +737,10 @@ class FlyLocaliser:
         if len(self._fit_residuals) < MIN_FITS_TO_JUDGE:
             return False
         return fix.residual > POOR_FIT_RATIO * float(np.median(self._fit_residuals))
+
+    def _fits_well(self, fix) -> bool:
+        """Whether enough recent fixes exist to judge and this one fits as well as they do."""
+        return len(self._fit_residuals) >= MIN_FITS_TO_JUDGE and not self._poorly_fitted(fix)
 
     def _best_of_starts(self, new_pyramid, T_pred: np.ndarray, source: str, fix):
         """(the best-fitting fix, '') of ``fix`` and alignments from other starts than the constant-
@@ -830,7 +834,7 @@ class FlyLocaliser:
         if fix is None:
             return None, why
         why = self._implausible(T_pred, fix.T_map_base, source)
-        if why and any_fitted and not self._poorly_fitted(fix) and len(self._fit_residuals) >= MIN_FITS_TO_JUDGE:
+        if why and any_fitted and self._fits_well(fix):
             why = self._implausible(T_pred, fix.T_map_base, "none")
         return (None, f"photometric fix {why}") if why else (fix, "")
 
