@@ -157,7 +157,7 @@ class KeyframeGraph:
             if kf is not None and not np.allclose(T, kf.T_map_base, atol=1e-7):   # (round-off moves nothing)
                 kf.T_map_base = T
                 kf.points_map = transform_points(T, kf.points.astype(np.float64)).astype(np.float32)
-        C = self.archive[newest_id].T_map_base @ invert(before)
+        C = orthonormalised(self.archive[newest_id].T_map_base @ invert(before))
         return np.eye(4) if np.allclose(C, np.eye(4), atol=1e-7) else C
 
     # ----------------------------------------------------------------------------- the bound

@@ -397,11 +397,11 @@ class FlyLocaliser:
 
     def _apply_correction(self, C: np.ndarray) -> None:
         """Move the state that lives in the map frame (map→odom, tracking, reference view) by C."""
-        self.T_map_odom = C @ self.T_map_odom
+        self.T_map_odom = orthonormalised(C @ self.T_map_odom)
         if self._track.last_T_map_base is not None:
-            self._track.last_T_map_base = C @ self._track.last_T_map_base
+            self._track.last_T_map_base = orthonormalised(C @ self._track.last_T_map_base)
         if self._reference is not None:
-            self._reference.T_map_cam = C @ self._reference.T_map_cam
+            self._reference.T_map_cam = orthonormalised(C @ self._reference.T_map_cam)
 
     def map_keyframes(self) -> list[Keyframe]:
         """Every keyframe of the map: the back-end's archive (all of them), else the sliding window."""
@@ -550,6 +550,9 @@ class FlyLocaliser:
             view_flies = (positions_cam, fitness, image, new_pyramid)
 
         def finish(T_map_base, status, registered, cov, delta=float("nan"), may_add=True, links=()):
+            # every estimate rigid: it becomes keyframes, references and corrections, where the rounding
+            # of a slightly skewed rotation doubled with each keyframe until the evolver refused it
+            T_map_base = orthonormalised(T_map_base)
             added = False
             # Registered poses extend the map; so does odometry when the map no longer covers the robot
             # (a long featureless stretch), or the map would stop growing.
@@ -562,7 +565,7 @@ class FlyLocaliser:
                 if self.backend is not None:
                     C = self._graph_keyframe(kf, list(links) if registered else [], cov if registered else None)
                     if not np.array_equal(C, np.eye(4)):
-                        T_map_base = C @ T_map_base
+                        T_map_base = orthonormalised(C @ T_map_base)
                         self._apply_correction(C)
             if T_odom_base is not None:
                 self.T_map_odom = T_map_base @ invert(T_odom_base)
