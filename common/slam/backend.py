@@ -84,6 +84,11 @@ class KeyframeGraph:
             return planar_covariance(np.diag([sxy, sxy, syaw]) ** 2)
         return np.diag([sxy, sxy, sxy, syaw, syaw, syaw]) ** 2
 
+    def tracked_cov(self, T_i_j: np.ndarray, kf) -> np.ndarray:
+        """Covariance of a motion the camera measured on the flies' neighbourhoods (a loop aligned
+        photometrically): the tracked-odometry model of ``kf``'s flies (needs ``camera``)."""
+        return self._odometry_cov(T_i_j, kf)
+
     def _body_cov(self, cov_map: np.ndarray, T_map_base: np.ndarray) -> np.ndarray:
         """A map-frame (position, rotation) 6×6 covariance in the base frame, floored so no axis is exact."""
         R = np.zeros((6, 6))
