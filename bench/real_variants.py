@@ -12,6 +12,9 @@ ground truth re-expressed for it (poses of the frames kept, in the variant's bas
   car stops), then backwards to the first (it reverses down the same street): the way back revisits
   every place of the way out, so loop closure on real images is exercised, and the end should meet
   the start;
+* ``laps``: the ``outback`` journey LAPS times over, held still at both ends (a robot patrolling one
+  street: a long run that keeps revisiting its own map, so keyframes, loop closures and graph
+  corrections pile up as they do over a real day's driving);
 * ``half``: images and intrinsics at half resolution (a 620×188 camera);
 * ``crop640``: the central 640 columns (a narrower field of view: 48° instead of 82°);
 * ``mount0``: the rig's ``T_base_camera`` without its height (base_link at the camera, as a
@@ -42,10 +45,11 @@ from common.geometry import invert, make_transform, rot_x
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
-VARIANTS = ("stride2", "stride3", "reverse", "outback", "half", "crop640", "mount0", "noisy", "gain", "exposure",
+VARIANTS = ("stride2", "stride3", "reverse", "outback", "laps", "half", "crop640", "mount0", "noisy", "gain", "exposure",
             "sway")
 SWAY_DEG, SWAY_PERIOD = 3.0, 12
 OUTBACK_STOP = 5
+LAPS = 3
 
 
 def sway_pitch(frame: int) -> float:
@@ -90,6 +94,9 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
     index = index[::stride] if stride > 1 else index[::-1] if name == "reverse" else index
     if name == "outback":
         index = np.r_[index, np.full(OUTBACK_STOP, n - 1), index[-2::-1]]
+    if name == "laps":
+        lap = np.r_[index, np.full(OUTBACK_STOP, n - 1), index[-2::-1], np.full(OUTBACK_STOP, 0)]
+        index = np.r_[np.tile(lap, LAPS), index[:1]]
     scale = 0.5 if name == "half" else 1.0
     x0 = (calib.width - 640) // 2 if name == "crop640" else 0
     if scale != 1.0:
