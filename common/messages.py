@@ -222,6 +222,8 @@ class Keyframe:
     orientation: np.ndarray = array_field("float64", (4,))
     points: np.ndarray = array_field("float32", (None, 3))
     fitness: np.ndarray = array_field("float32", (None,))
+    # the grey left image at half resolution, in a saved map only (photometric loops); not on the bus
+    image: Optional[np.ndarray] = array_field("uint8", (None, None), optional=True)
 
     def validate(self) -> None:
         check_range("stamp_ns", self.stamp_ns, 0, MAX_STAMP_NS)
@@ -229,6 +231,8 @@ class Keyframe:
         _check_quaternion("orientation", self.orientation)
         if len(self.fitness) != len(self.points):
             raise InvalidValue(f"{len(self.points)} points but {len(self.fitness)} fitness values")
+        if self.image is not None and self.image.size == 0:
+            raise InvalidValue(f"keyframe image is empty {self.image.shape}")
         check_finite("points", self.points, MAX_FLY_RANGE_M)
         if np.any(np.isnan(self.fitness)) or np.any(np.isposinf(self.fitness)):
             raise InvalidValue("fitness must be finite or -inf")

@@ -21,6 +21,7 @@ def sample_map(n: int = 5, seed: int = 0):
         k = int(rng.integers(50, 300))
         kfs.append(Keyframe(10 + i, 1_700_000_000_000_000_000 + i * 10**8, T,
                             rng.normal(0, 2.0, (k, 3)).astype(np.float32), rng.random(k).astype(np.float32)))
+    kfs[1].image = rng.integers(0, 256, (12, 20), dtype=np.uint8)   # a camera-only keyframe's half image
     cov = np.diag(rng.random(6) + 0.1) * 1e-3
     edges = [MapEdge(kfs[0].id, kfs[0].id, kfs[0].T_map_base, np.eye(6) * 1e-4, "prior", False)]
     for a, b in zip(kfs[:-1], kfs[1:]):
@@ -43,6 +44,7 @@ def test_round_trip_is_exact(tmp_path):
         assert b.points.dtype == np.float32 and np.array_equal(b.points, a.points)
         assert b.fitness.dtype == np.float32 and np.array_equal(b.fitness, a.fitness)
         np.testing.assert_allclose(b.T_map_base, a.T_map_base, rtol=0, atol=1e-14)   # via a quaternion
+        assert (b.image is None) == (a.image is None) and (a.image is None or np.array_equal(b.image, a.image))
     assert len(data.edges) == len(edges)
     for a, b in zip(edges, data.edges):
         assert (b.i, b.j, b.kind, b.robust) == (a.i, a.j, a.kind, a.robust)

@@ -15,6 +15,8 @@ from common.importers.base import write_recording
 from common.importers.kitti import load_kitti
 from common.lockstep import run_lockstep
 from common.recording import RecordingReader
+from common.slam.localiser import FlyLocaliser
+from common.slam.mapfile import load_map
 from common.trajectory_metrics import associate
 
 FIRST = 50        # frames 50..99 of the clip: 40 m out, 40 m back
@@ -53,3 +55,17 @@ def test_the_way_back_closes_a_loop_that_agrees_with_the_truth(there_and_back):
         assert np.linalg.norm(E[:3, 3]) < 0.05 and np.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.5
     # back at the start: the truth's end is its start, 40 m away and back
     assert np.linalg.norm(result.estimated[-1][:3, 3] - result.estimated[0][:3, 3]) < 0.3
+
+
+def test_a_saved_camera_only_map_keeps_the_images_its_loops_align_on(there_and_back, tmp_path):
+    core = there_and_back.localiser
+    loc = core.localiser
+    assert core.save_map(tmp_path / "map.mcap")
+    data = load_map(tmp_path / "map.mcap")
+    fresh = FlyLocaliser(loc.T_base_camera, loc.config, calibration=loc.calibration)
+    fresh.load_map(data)
+    saved = {kf.id: kf for kf in loc.map_keyframes()}
+    loaded = fresh.map_keyframes()
+    assert len(loaded) == len(saved)
+    assert all(kf.image is not None and np.array_equal(kf.image, saved[kf.id].image) for kf in loaded)
+    assert fresh._photometric_loops(loaded[0], loaded[-1])

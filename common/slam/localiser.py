@@ -422,9 +422,9 @@ class FlyLocaliser:
 
     def _photometric_loops(self, old: Keyframe, kf: Keyframe) -> bool:
         """Whether a loop between these keyframes is measured on their fly neighbourhoods: without wheels
-        (the camera's own covariance model is in the graph) and with both keyframes' images.  On the
-        KITTI clip driven there and back three times, δ's loop factors were 0.53 m (median) and up to
-        5° off, so the graph bent the tracked trajectory instead of correcting it."""
+        (the camera's own covariance model is in the graph) and with both keyframes' images.  On deep
+        street scenes δ's loop minima are biased by the far flies' depth errors, and the graph bent the
+        tracked trajectory to them (docs/design/localiser.md)."""
         return (self.config.loop_photometric and self.backend.camera is not None and self.calibration is not None
                 and old.image is not None and kf.image is not None)
 
@@ -472,8 +472,9 @@ class FlyLocaliser:
             raise LocaliserError("a map can only be loaded into a fresh localiser")
         kfs = sorted(data.keyframes, key=lambda k: k.id)
         for mk in kfs:
+            image = getattr(mk, "image", None) if self.config.odometry == "visual" else None
             kf = Keyframe(int(mk.id), int(mk.stamp_ns), np.asarray(mk.T_map_base, float).copy(),
-                          np.asarray(mk.points, np.float32), np.asarray(mk.fitness, np.float32))
+                          np.asarray(mk.points, np.float32), np.asarray(mk.fitness, np.float32), image=image)
             self.keyframes.append(kf)
             if self.backend is not None:
                 self.backend.archive[kf.id] = kf

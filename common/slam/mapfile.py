@@ -2,7 +2,8 @@
 
 - ``map/keyframes``: one ``flyslam.FlyMap`` message per keyframe (the bus's own schema, so the tools that
   show ``slam/map`` read it): id, stamp, T_map_base as position + xyzw quaternion, the population's
-  points (K, 3) float32 in that keyframe's base_link and their fitness (K,) float32;
+  points (K, 3) float32 in that keyframe's base_link and their fitness (K,) float32, and for a camera-only
+  map the keyframe's grey left image at half resolution (its loops are aligned on it);
 - ``map/graph``: one ``flyslam.PoseEstimate`` per pose-graph edge, because an edge is exactly that:
   the pose of keyframe j (``child_frame_id = "keyframe/<j>"``) in keyframe i (``frame_id =
   "keyframe/<i>"``, or ``"map"`` for a prior), with its 6×6 covariance in flyslam's (x, y, z, rx, ry, rz)
@@ -50,6 +51,7 @@ class MapKeyframe:
     T_map_base: np.ndarray    # 4×4
     points: np.ndarray        # (K, 3) float32 in this keyframe's base_link
     fitness: np.ndarray       # (K,) float32
+    image: np.ndarray | None = None   # grey left image at half resolution (a camera-only map's keyframes)
 
 
 @dataclass
@@ -82,8 +84,12 @@ def _keyframe_msg(kf) -> m.FlyMap:
         raise MapFileError(f"keyframe {kf.id}: points must be (K, 3) and fitness (K,), got "
                            f"{pts.shape} and {fit.shape}")
     p, q = pose_from_transform(T)
+    image = getattr(kf, "image", None)
+    if image is not None and (np.asarray(image).ndim != 2 or np.asarray(image).dtype != np.uint8):
+        raise MapFileError(f"keyframe {kf.id}: image must be a grey uint8 H×W array, got {np.asarray(image).shape}")
     msg = m.Keyframe(id=int(kf.id), stamp_ns=int(kf.stamp_ns), position=p, orientation=q,
-                     points=pts.astype(np.float32, copy=False), fitness=fit.astype(np.float32, copy=False))
+                     points=pts.astype(np.float32, copy=False), fitness=fit.astype(np.float32, copy=False),
+                     image=None if image is None else np.ascontiguousarray(image))
     return m.FlyMap(keyframes=[msg], header=m.header(int(kf.id), int(kf.stamp_ns), m.MAP))
 
 
@@ -192,7 +198,8 @@ def load_map(path: str | Path) -> FlyMapData:
             if rec.key == KEYFRAMES_KEY:
                 for kf in m.decode(rec.payload, m.FlyMap).keyframes:
                     keyframes.append(MapKeyframe(kf.id, kf.stamp_ns, transform_from_pose(kf.position, kf.orientation),
-                                                 kf.points.copy(), kf.fitness.copy()))
+                                                 kf.points.copy(), kf.fitness.copy(),
+                                                 None if kf.image is None else kf.image.copy()))
             else:
                 edges.append(_edge_from_msg(m.decode(rec.payload, m.PoseEstimate)))
         meta = json.loads(info.get("meta", "{}"))
