@@ -11,8 +11,9 @@ reference ORB + PnP odometry of ``bench/stereo_vo_reference.py``. Both are score
 ``--frames A:B`` (repeatable) runs frames A..B-1 of each clip as if the recording started at A, e.g.
 ``--frames 0:50 --frames 50:100`` for the halves settings are chosen on and checked on.
 ``--variants`` also runs each clip changed as ``bench/real_variants.py`` describes (every 2nd / 3rd
-frame, reversed, half resolution, a 640-px crop, base_link at the camera, sensor noise, mismatched
-and swinging exposure), keyed ``<clip>~<variant>``:
+frame, reversed, there and back, three laps of there and back, half resolution, a 640-px crop,
+base_link at the camera, sensor noise, mismatched and swinging exposure, a swaying rig), keyed
+``<clip>~<variant>``:
 sequences flyslam has not seen, made from the one it has.
 Writes ``bench/out/real/<clip>[_A-B]/trajectories.png`` (top view, map x right / y up; the estimates
 aligned on the first truth pose). With --json the last stdout line is one JSON object: per run (key

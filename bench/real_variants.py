@@ -14,7 +14,9 @@ ground truth re-expressed for it (poses of the frames kept, in the variant's bas
   the start;
 * ``laps``: the ``outback`` journey LAPS times over, held still at both ends (a robot patrolling one
   street: a long run that keeps revisiting its own map, so keyframes, loop closures and graph
-  corrections pile up as they do over a real day's driving);
+  corrections pile up as they do over a real day's driving), each frame with its own sensor noise
+  (σ = LAPS_NOISE grey levels): a revisit sees the place from the same spot, but never the very
+  pixels of an earlier visit;
 * ``half``: images and intrinsics at half resolution (a 620×188 camera);
 * ``crop640``: the central 640 columns (a narrower field of view: 48° instead of 82°);
 * ``mount0``: the rig's ``T_base_camera`` without its height (base_link at the camera, as a
@@ -45,11 +47,11 @@ from common.geometry import invert, make_transform, rot_x
 from common.importers import StereoDataset
 from common.importers.base import C_BODY_OPTICAL
 
-VARIANTS = ("stride2", "stride3", "reverse", "outback", "laps", "half", "crop640", "mount0", "noisy", "gain", "exposure",
-            "sway")
+VARIANTS = ("stride2", "stride3", "reverse", "outback", "laps", "half", "crop640", "mount0", "noisy", "gain",
+            "exposure", "sway")
 SWAY_DEG, SWAY_PERIOD = 3.0, 12
 OUTBACK_STOP = 5
-LAPS = 3
+LAPS, LAPS_NOISE = 3, 2.0
 
 
 def sway_pitch(frame: int) -> float:
@@ -130,9 +132,10 @@ def variant(load: Callable[[], StereoDataset], name: str) -> StereoDataset:
             left, right = (cv2.resize(img, size, interpolation=cv2.INTER_AREA) for img in (left, right))
         if x0:
             left, right = (np.ascontiguousarray(img[:, x0:x0 + 640]) for img in (left, right))
-        if name == "noisy":
-            rng = np.random.default_rng(int(index[i]))
-            left, right = (np.clip(img + rng.normal(0.0, 6.0, img.shape), 0, 255).astype(np.uint8)
+        if name in ("noisy", "laps"):      # noisy: per place; laps: per visit
+            rng = np.random.default_rng(int(index[i]) if name == "noisy" else i)
+            sigma = 6.0 if name == "noisy" else LAPS_NOISE
+            left, right = (np.clip(img + rng.normal(0.0, sigma, img.shape), 0, 255).astype(np.uint8)
                            for img in (left, right))
         if name == "exposure":
             g = 1.0 + 0.3 * np.sin(int(index[i]) / 2.0)

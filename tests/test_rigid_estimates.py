@@ -25,3 +25,15 @@ def test_an_estimate_from_skewed_odometry_is_rigid():
         est = loc.update((k + 1) * 100_000_000, few, np.zeros(0, np.float32), T_odom_base=skewed)
         assert _skew(est.T_map_base[:3, :3]) < 1e-12
         assert np.allclose(est.T_map_base[:2, 3], [1.0, 0.5])
+
+
+def test_a_skewed_graph_correction_leaves_the_state_it_moves_rigid():
+    loc = FlyLocaliser(np.eye(4), LocaliserConfig(odometry="visual"))
+    loc.relocalised(0, planar_pose(2.0, 1.0, 0.2))
+    loc._track_update(100_000_000, planar_pose(3.0, 1.0, 0.2))
+    C = planar_pose(0.1, -0.05, 0.01)
+    C[:3, :3] *= 1 + 1e-6
+    for _ in range(40):                 # one correction per keyframe, as on a long revisiting run
+        loc._apply_correction(C)
+    assert _skew(loc.T_map_odom[:3, :3]) < 1e-12
+    assert _skew(loc._track.last_T_map_base[:3, :3]) < 1e-12

@@ -12,8 +12,9 @@ keyframe's ``T_map_base`` and ``points_map`` are the graph's.  Factors (flyslam 
   and the angle turned between them (the same model as the localiser's odometry prior); tracked by the
   camera alone, σ comes from the camera (:func:`tracked_motion_cov`);
 - registration i→j: the fix's covariance (map-frame position rotated into keyframe j's base);
-- loop i→j: the planar registration's per-axis noise (``registration_sigma``), Cauchy-robust; a loop
-  factor the optimised graph down-weights is removed again.
+- loop i→j: on wheels the planar registration's per-axis noise (``registration_sigma``); tracked by the
+  camera alone, the two keyframes aligned photometrically with the camera's σ (:meth:`tracked_cov`).
+  Cauchy-robust; a loop factor the optimised graph down-weights is removed again.
 """
 from __future__ import annotations
 
@@ -220,7 +221,7 @@ class KeyframeGraph:
         for k in drop:
             kf = self.archive.pop(k)
             kf.points, kf.points_map = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
-            kf.fitness = np.zeros(0, np.float32)
+            kf.fitness, kf.image = np.zeros(0, np.float32), None
         graph.failed_updates = self.graph.failed_updates
         self.graph = graph        # optimised with the next keyframe (whose correction the localiser applies)
         self.dropped += len(drop)

@@ -40,8 +40,8 @@ from common.registration.weights import visible_mask
 from common.slam.backend import KeyframeGraph, LoopClosure, odometry_sigmas
 from common.slam.config import LocaliserConfig
 from common.slam.posegraph import UNCONSTRAINED_SIGMA, PoseGraphError, planar_covariance
-from common.slam.tracking import (SWITCH_RESIDUAL_RATIO, ReferenceView, align_keyframes, photometric_fix, reference_view,
-                                  reverse_motion)
+from common.slam.tracking import (SWITCH_RESIDUAL_RATIO, ReferenceView, align_keyframes, photometric_fix,
+                                  reference_view, reverse_motion)
 
 
 POOR_FIT_RATIO = 1.5   # a fix whose residual scale exceeds the recent median by this much is tried from other starts
@@ -290,7 +290,9 @@ class FlyLocaliser:
                       image: np.ndarray | None = None) -> Keyframe:
         pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
         half = None
-        if image is not None and self.config.loop_photometric and self.config.odometry == "visual":
+        c = self.config
+        if image is not None and self.backend is not None and c.loop_closure and c.loop_photometric \
+                and c.odometry == "visual":
             grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
             half = cv2.pyrDown(np.ascontiguousarray(grey, np.uint8))
         kf = Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32), fit.astype(np.float32),
@@ -343,12 +345,13 @@ class FlyLocaliser:
         """A loop factor old→kf, or None (the attempt and its outcome go to ``backend.loops``).  Without
         wheels it is measured on the two keyframes' fly neighbourhoods (:meth:`_photometric_loop`), from
         kf's tracked pose and, when that does not align, from δ's; otherwise δ's minimum is the factor."""
-        if self._photometric_loops(old, kf):
+        if self._loop_is_photometric(old, kf):
             T_new, why = self._photometric_loop(old, kf, kf.T_map_base)
             if T_new is None:
                 T_delta, _, why_delta = self._delta_loop(old, kf)
                 if T_delta is not None:
-                    T_new, why = self._photometric_loop(old, kf, T_delta)
+                    T_new, why_from_delta = self._photometric_loop(old, kf, T_delta)
+                    why = f"{why}; from δ's minimum: {why_from_delta}"
                 elif why_delta:
                     why = f"{why}; δ: {why_delta}"
             if T_new is None:
@@ -360,7 +363,7 @@ class FlyLocaliser:
             return self.backend.add_loop(old, kf, T_new, self.backend.tracked_cov(rel, kf))
         T_delta, sig, why = self._delta_loop(old, kf)
         if T_delta is None:
-            if why:
+            if why is not None:        # (None: the views share too few flies to try)
                 self.backend.loops.append(LoopClosure(old.id, kf.id, 0.0, False, why))
             return None
         handle = self.backend.add_loop(old, kf, T_delta, self._delta_covariance(np.diag(sig ** 2)))
@@ -370,8 +373,8 @@ class FlyLocaliser:
 
     def _delta_loop(self, old: Keyframe, kf: Keyframe):
         """(kf's pose in the map, its per-axis σ, '') from kf's flies registered against the old
-        keyframe's (δ, planar, around kf's pose), or (None, None, why) (why '' when the views share too
-        few flies).  Axes whose minimum sits on the window's edge (along a corridor) are pinned and
+        keyframe's (δ, planar, around kf's pose), or (None, None, why) (why None when the views share
+        too few flies to try).  Axes whose minimum sits on the window's edge (along a corridor) are pinned and
         their sigma made loose.
 
         Only the two views' overlap registers: kf's flies the old camera sees, against the old flies
@@ -395,7 +398,7 @@ class FlyLocaliser:
         old_map = np.concatenate([k.points_map for k in near]).astype(np.float64)
         in_b = self._in_view(old_map, kf.T_map_base)
         if min(in_a.sum(), in_b.sum()) < c.min_flies:
-            return None, None, ""
+            return None, None, None
         A = kf.points[in_a].astype(np.float64)
         B = transform_points(invert(kf.T_map_base), old_map[in_b])
         weights_a = kf.fitness[in_a] / max(float(kf.fitness.max()), 1e-12)
@@ -420,7 +423,7 @@ class FlyLocaliser:
         sig = np.where(pinned, 1.0, np.asarray(c.registration_sigma, dtype=float))
         return kf.T_map_base @ invert(planar_pose(*res.params)), sig, ""
 
-    def _photometric_loops(self, old: Keyframe, kf: Keyframe) -> bool:
+    def _loop_is_photometric(self, old: Keyframe, kf: Keyframe) -> bool:
         """Whether a loop between these keyframes is measured on their fly neighbourhoods: without wheels
         (the camera's own covariance model is in the graph) and with both keyframes' images.  On deep
         street scenes δ's loop minima are biased by the far flies' depth errors, and the graph bent the
@@ -433,10 +436,10 @@ class FlyLocaliser:
         ``T_start``, or (None, why): when they do not align, or land beyond the loop window from kf's
         tracked pose (a basin δ's window would not have searched)."""
         c = self.config
-        T_new, al = align_keyframes(old, kf, self.calibration.K_rectified, self.T_base_camera, [T_start],
-                                    max(1, c.photometric_levels - 1), c.photometric_min_inliers)
+        T_new, why = align_keyframes(old, kf, self.calibration.K_rectified, self.T_base_camera, [T_start],
+                                     max(1, c.photometric_levels - 1), c.photometric_min_inliers)
         if T_new is None:
-            return None, al
+            return None, why
         moved = planar_from_transform(invert(kf.T_map_base) @ T_new)
         if np.any(np.abs(moved) > np.asarray(c.loop_window, dtype=float)):
             return None, f"aligned {np.round(moved, 2).tolist()} from the tracked pose, beyond the loop window"
@@ -514,7 +517,7 @@ class FlyLocaliser:
             self._revisit_anchor = min(pool, key=lambda kf: np.linalg.norm(kf.T_map_base[:2, 3] - T_map_base[:2, 3])).id
         if T_odom_base is not None:
             T_odom_base = np.asarray(T_odom_base, dtype=float)
-            self.T_map_odom = T_map_base @ invert(T_odom_base)
+            self.T_map_odom = orthonormalised(T_map_base @ invert(T_odom_base))
             self._last_odom, self._last_odom_stamp = T_odom_base.copy(), stamp_ns
 
     # ------------------------------------------------------------------------------ prediction
@@ -625,7 +628,7 @@ class FlyLocaliser:
                         T_map_base = orthonormalised(C @ T_map_base)
                         self._apply_correction(C)
             if T_odom_base is not None:
-                self.T_map_odom = T_map_base @ invert(T_odom_base)
+                self.T_map_odom = orthonormalised(T_map_base @ invert(T_odom_base))
             # Before the map exists the pose is a placeholder, not a measurement: it must neither teach
             # the motion model a velocity (live, the first populations come seconds apart while the
             # flies converge, and a 'standing' camera then refuses the first true motion), nor anchor a

@@ -137,7 +137,9 @@ def photometric_fix(view: ReferenceView, new_pyramid: list[np.ndarray], K: np.nd
 
 
 def half_resolution_K(K: np.ndarray) -> np.ndarray:
-    """Intrinsics of an image halved by cv2.pyrDown (pixel centres: (c + 0.5) / 2 − 0.5)."""
+    """Intrinsics of an image halved by cv2.pyrDown, in the convention of photometric.pyramid's levels
+    (c → (c + 0.5) / 2 − 0.5; pyrDown itself centres on c / 2, a quarter pixel away, which moves an
+    alignment by millimetres)."""
     Kh = np.array(K, dtype=float, copy=True)
     Kh[0, 0], Kh[1, 1] = K[0, 0] / 2, K[1, 1] / 2
     Kh[0, 2], Kh[1, 2] = (K[0, 2] + 0.5) / 2 - 0.5, (K[1, 2] + 0.5) / 2 - 0.5
@@ -149,7 +151,7 @@ def align_keyframes(old, new, K: np.ndarray, T_base_camera: np.ndarray, starts_m
     """The new keyframe's base pose in the map from the old keyframe's flies aligned into the new one's
     image (both keyframes' ``image``: half-resolution grey, so ``K`` is halved here and ``levels``
     counts from half resolution), from each of ``starts_map_base`` (candidate poses of the new
-    keyframe; :func:`best_alignment` picks).  (T_map_base, alignment) or (None, why)."""
+    keyframe; :func:`best_alignment` picks).  (T_map_base, '') or (None, why)."""
     T_bc = np.asarray(T_base_camera, float)
     T_map_oldcam = old.T_map_base @ T_bc
     points = (invert(T_bc) @ np.c_[old.points.astype(np.float64), np.ones(len(old.points))].T).T[:, :3]
@@ -158,4 +160,4 @@ def align_keyframes(old, new, K: np.ndarray, T_base_camera: np.ndarray, starts_m
                         half_resolution_K(K), starts, min_inliers)
     if not _accepted(al, min_inliers):
         return None, al.reason or f"{100 * al.inliers:.0f} % inliers (< {100 * min_inliers:.0f} %)"
-    return T_map_oldcam @ invert(al.T) @ invert(T_bc), al
+    return T_map_oldcam @ invert(al.T) @ invert(T_bc), ""
