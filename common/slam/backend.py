@@ -12,9 +12,10 @@ keyframe's ``T_map_base`` and ``points_map`` are the graph's.  Factors (flyslam 
   and the angle turned between them (the same model as the localiser's odometry prior); tracked by the
   camera alone, σ comes from the camera (:func:`tracked_motion_cov`);
 - registration i→j: the fix's covariance (map-frame position rotated into keyframe j's base);
-- loop i→j: on wheels the planar registration's per-axis noise (``registration_sigma``); tracked by the
-  camera alone, the two keyframes aligned photometrically with the camera's σ (:meth:`tracked_cov`).
-  Cauchy-robust; a loop factor the optimised graph down-weights is removed again.
+- loop i→j: the two keyframes aligned on the old one's fly neighbourhoods, with the camera's σ
+  (:meth:`tracked_cov`), or δ's planar registration with its per-axis noise (``registration_sigma``)
+  where the keyframes have no images.  Cauchy-robust; a loop factor the optimised graph down-weights
+  is removed again.
 """
 from __future__ import annotations
 
@@ -71,14 +72,13 @@ class KeyframeGraph:
         self.loops: list[LoopClosure] = []
         self.dropped = 0                   # keyframes dropped by the size bound
         self._last_id: int | None = None
-        self.camera = camera               # (fx, baseline, T_camera_base): odometry tracked by the camera alone
+        self.camera = camera               # (fx, baseline, T_camera_base): the camera's measurement model
 
     # --------------------------------------------------------------------------- factors
     def _odometry_cov(self, T_i_j: np.ndarray, kf=None) -> np.ndarray:
-        if self.camera is not None and kf is not None and len(kf.points):
-            fx, baseline, T_camera_base = self.camera
-            depth = float(np.median(transform_points(T_camera_base, kf.points.astype(np.float64))[:, 2]))
-            return tracked_motion_cov(T_i_j, depth, fx, baseline, self.config.tracked_disparity_px)
+        """Without wheels (a 6-DoF graph) the camera tracked the motion: its model; on wheels the wheels'."""
+        if self.camera is not None and not self.planar and kf is not None and len(kf.points):
+            return self.tracked_cov(T_i_j, kf)
         sxy, syaw = odometry_sigmas(self.config, float(np.linalg.norm(T_i_j[:3, 3])),
                                     abs(planar_from_transform(T_i_j)[2]))
         if self.planar:
@@ -86,9 +86,13 @@ class KeyframeGraph:
         return np.diag([sxy, sxy, sxy, syaw, syaw, syaw]) ** 2
 
     def tracked_cov(self, T_i_j: np.ndarray, kf) -> np.ndarray:
-        """Covariance of a motion the camera measured on the flies' neighbourhoods (a loop aligned
-        photometrically): the tracked-odometry model of ``kf``'s flies (needs ``camera``)."""
-        return self._odometry_cov(T_i_j, kf)
+        """Covariance of a motion the camera measured on the flies' neighbourhoods (tracking without
+        wheels, a loop aligned photometrically): :func:`tracked_motion_cov` at ``kf``'s flies' median
+        depth (needs ``camera``); in a planar graph its (x, y, yaw) block."""
+        fx, baseline, T_camera_base = self.camera
+        depth = float(np.median(transform_points(T_camera_base, kf.points.astype(np.float64))[:, 2]))
+        cov = tracked_motion_cov(T_i_j, depth, fx, baseline, self.config.tracked_disparity_px)
+        return planar_covariance(cov[np.ix_([0, 1, 5], [0, 1, 5])]) if self.planar else cov
 
     def _body_cov(self, cov_map: np.ndarray, T_map_base: np.ndarray) -> np.ndarray:
         """A map-frame (position, rotation) 6×6 covariance in the base frame, floored so no axis is exact."""

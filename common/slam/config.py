@@ -52,8 +52,8 @@ class LocaliserConfig:
     photometric_reference_angle_rad: float = np.deg2rad(5.0)   # ... or turning this much
     pose_graph: bool = True             # keyframes as nodes of common.slam.backend's pose graph
     loop_closure: bool = True           # register a new keyframe against old ones near it (a loop factor)
-    loop_photometric: bool = True       # without wheels, measure a loop on the two keyframes' fly neighbourhoods
-                                        # (half-resolution images kept with each keyframe; needs photometric)
+    loop_photometric: bool = True       # measure a loop on the two keyframes' fly neighbourhoods (half-
+                                        # resolution images kept with each keyframe; needs photometric)
     loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
     loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
     loop_min_separation: int = 10       # ... and is at least this many keyframes older

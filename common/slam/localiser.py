@@ -147,8 +147,7 @@ class FlyLocaliser:
         self._newest_view: tuple | None = None    # (T_map_cam, view flies) of the newest registered update
                                                   # (or the first, which defines the map)
         cal = self.calibration
-        camera = ((cal.fx, cal.baseline, invert(self.T_base_camera))
-                  if self.config.odometry == "visual" and cal is not None else None)
+        camera = (cal.fx, cal.baseline, invert(self.T_base_camera)) if cal is not None else None
         self.backend = (KeyframeGraph(self.config, planar=self.config.odometry == "wheels", archive=archive,
                                       camera=camera)
                         if self.config.pose_graph else None)
@@ -291,8 +290,7 @@ class FlyLocaliser:
         pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
         half = None
         c = self.config
-        if image is not None and self.backend is not None and c.loop_closure and c.loop_photometric \
-                and c.odometry == "visual":
+        if image is not None and self.backend is not None and c.loop_closure and c.loop_photometric:
             grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
             half = cv2.pyrDown(np.ascontiguousarray(grey, np.uint8))
         kf = Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32), fit.astype(np.float32),
@@ -342,9 +340,9 @@ class FlyLocaliser:
                 return np.eye(4)
 
     def _close_loop(self, old: Keyframe, kf: Keyframe) -> int | None:
-        """A loop factor old→kf, or None (the attempt and its outcome go to ``backend.loops``).  Without
-        wheels it is measured on the two keyframes' fly neighbourhoods (:meth:`_photometric_loop`), from
-        kf's tracked pose and, when that does not align, from δ's; otherwise δ's minimum is the factor."""
+        """A loop factor old→kf, or None (the attempt and its outcome go to ``backend.loops``).  It is
+        measured on the two keyframes' fly neighbourhoods (:meth:`_photometric_loop`), from kf's tracked
+        pose and, when that does not align, from δ's; without keyframe images δ's minimum is the factor."""
         if self._loop_is_photometric(old, kf):
             T_new, why = self._photometric_loop(old, kf, kf.T_map_base)
             if T_new is None:
@@ -424,11 +422,11 @@ class FlyLocaliser:
         return kf.T_map_base @ invert(planar_pose(*res.params)), sig, ""
 
     def _loop_is_photometric(self, old: Keyframe, kf: Keyframe) -> bool:
-        """Whether a loop between these keyframes is measured on their fly neighbourhoods: without wheels
-        (the camera's own covariance model is in the graph) and with both keyframes' images.  On deep
-        street scenes δ's loop minima are biased by the far flies' depth errors, and the graph bent the
-        tracked trajectory to them (docs/design/localiser.md)."""
-        return (self.config.loop_photometric and self.backend.camera is not None and self.calibration is not None
+        """Whether a loop between these keyframes is measured on their fly neighbourhoods: with a
+        calibration and both keyframes' images (not a map saved without them).  On deep street scenes
+        δ's loop minima are biased by the far flies' depth errors, and the graph bent the tracked
+        trajectory to them (docs/design/localiser.md)."""
+        return (self.config.loop_photometric and self.backend.camera is not None
                 and old.image is not None and kf.image is not None)
 
     def _photometric_loop(self, old: Keyframe, kf: Keyframe, T_start: np.ndarray):
@@ -475,7 +473,7 @@ class FlyLocaliser:
             raise LocaliserError("a map can only be loaded into a fresh localiser")
         kfs = sorted(data.keyframes, key=lambda k: k.id)
         for mk in kfs:
-            image = getattr(mk, "image", None) if self.config.odometry == "visual" else None
+            image = getattr(mk, "image", None)
             kf = Keyframe(int(mk.id), int(mk.stamp_ns), np.asarray(mk.T_map_base, float).copy(),
                           np.asarray(mk.points, np.float32), np.asarray(mk.fitness, np.float32), image=image)
             self.keyframes.append(kf)
