@@ -52,3 +52,17 @@ def test_a_long_run_keeps_a_bounded_map_and_drops_remapped_views_first(tmp_path)
 def test_a_bad_bound_is_refused_with_one_line():
     with pytest.raises(ValueError, match="max_archive_keyframes must be at least 1"):
         ArchiveConfig(max_archive_keyframes=0)
+
+
+def test_a_population_refused_for_want_of_calibration_counts_when_sent_again():
+    """A localiser still asking for the calibration refuses the first population; the same population
+    sent again once the calibration is in is localised, not dismissed as a repeat."""
+    rng = np.random.default_rng(3)
+    T = planar_pose(0.0, 0.0, 0.0)
+    pop = population(T, corridor(rng), rng, 1, 500_000_000, T)
+    core = LocaliserCore(LocaliserConfig())
+    assert core.on_population(pop).reason == "no calibration"
+    core.on_calibration(m.calibration_to_msg(CALIB, 1, 1))
+    out = core.on_population(pop)
+    assert out.estimate is not None, out.reason
+    assert core.on_population(pop).reason == "republished"

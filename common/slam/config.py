@@ -32,8 +32,8 @@ class LocaliserConfig:
     prior_sigma_yaw: tuple = (0.01, 0.08)   # ... for the heading (rad, rad/m)
     prior_sigma_yaw_per_rad: float = 0.05   # ... plus this per radian turned since the last fix
     registration_sigma: tuple = (0.3, 0.03, np.deg2rad(0.6))   # δ's noise: along, across the view (m), heading
-    tracked_disparity_px: float = 1.0   # without wheels, a fly's disparity is trusted to this (the evolver's inlier
-                                        # bound): the visual odometry factors' σ (common.slam.backend)
+    tracked_disparity_px: float = 1.0   # a fly's disparity is trusted to this (the evolver's inlier bound): the σ of
+                                        # visual odometry and photometric loop factors (common.slam.backend)
     gate_chi2: float = 16.0             # a δ registration this far (Mahalanobis²) from the prediction is refused
     use_stereo_model: bool = True       # δ with depth-uncertainty and footprint weights (StereoModel)
     min_view_coverage: float = 0.5      # a view the map covers less than this gets a keyframe even unregistered

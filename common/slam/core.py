@@ -118,11 +118,11 @@ class LocaliserCore(LatchedInputs):
         source = (pop.source_seq, pop.header.stamp_ns)
         if source == self._last_source:
             return LocaliserOutput(reason="republished")
+        if self.localiser is None and self._calibration_msg is None:
+            return LocaliserOutput(reason="no calibration")     # (not remembered: sent again, it counts)
         self._last_source = source
         next_frame = self._is_next_frame(source)
         if self.localiser is None:
-            if self._calibration_msg is None:
-                return LocaliserOutput(reason="no calibration")
             cmsg = self._calibration_msg
             self.localiser = FlyLocaliser(cmsg.T_base_camera, self.config, seed=self.seed,
                                           calibration=m.calibration_from_msg(cmsg))

@@ -289,8 +289,7 @@ class FlyLocaliser:
                       image: np.ndarray | None = None) -> Keyframe:
         pts, fit = voxel_thin(points, fitness, self.config.voxel_m)
         half = None
-        c = self.config
-        if image is not None and self.backend is not None and c.loop_closure and c.loop_photometric:
+        if image is not None and self._keeps_images():
             grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
             half = cv2.pyrDown(np.ascontiguousarray(grey, np.uint8))
         kf = Keyframe(self._next_id, stamp_ns, T_map_base.copy(), pts.astype(np.float32), fit.astype(np.float32),
@@ -345,13 +344,17 @@ class FlyLocaliser:
         pose and, when that does not align, from δ's; without keyframe images δ's minimum is the factor."""
         if self._loop_is_photometric(old, kf):
             T_new, why = self._photometric_loop(old, kf, kf.T_map_base)
+            T_delta = sig = None
             if T_new is None:
-                T_delta, _, why_delta = self._delta_loop(old, kf)
+                T_delta, sig, why_delta = self._delta_loop(old, kf)
                 if T_delta is not None:
                     T_new, why_from_delta = self._photometric_loop(old, kf, T_delta)
                     why = f"{why}; from δ's minimum: {why_from_delta}"
                 elif why_delta:
                     why = f"{why}; δ: {why_delta}"
+            if T_new is None and self.config.odometry == "wheels" and T_delta is not None:
+                # on wheels δ's loops held on the corridor: a loop the images cannot align is still δ's
+                return self._add_delta_loop(old, kf, T_delta, sig)
             if T_new is None:
                 self.backend.loops.append(LoopClosure(old.id, kf.id, 0.0, False, f"photometric: {why}"))
                 return None
@@ -364,6 +367,9 @@ class FlyLocaliser:
             if why is not None:        # (None: the views share too few flies to try)
                 self.backend.loops.append(LoopClosure(old.id, kf.id, 0.0, False, why))
             return None
+        return self._add_delta_loop(old, kf, T_delta, sig)
+
+    def _add_delta_loop(self, old: Keyframe, kf: Keyframe, T_delta: np.ndarray, sig: np.ndarray) -> int:
         handle = self.backend.add_loop(old, kf, T_delta, self._delta_covariance(np.diag(sig ** 2)))
         moved = float(np.linalg.norm(planar_from_transform(invert(kf.T_map_base) @ T_delta)[:2]))
         self.backend.loops.append(LoopClosure(old.id, kf.id, moved, True))
@@ -421,6 +427,11 @@ class FlyLocaliser:
         sig = np.where(pinned, 1.0, np.asarray(c.registration_sigma, dtype=float))
         return kf.T_map_base @ invert(planar_pose(*res.params)), sig, ""
 
+    def _keeps_images(self) -> bool:
+        """Whether keyframes keep their images: only for the loops that align on them."""
+        c = self.config
+        return self.backend is not None and c.loop_closure and c.loop_photometric
+
     def _loop_is_photometric(self, old: Keyframe, kf: Keyframe) -> bool:
         """Whether a loop between these keyframes is measured on their fly neighbourhoods: with a
         calibration and both keyframes' images (not a map saved without them).  On deep street scenes
@@ -474,6 +485,9 @@ class FlyLocaliser:
         kfs = sorted(data.keyframes, key=lambda k: k.id)
         for mk in kfs:
             image = getattr(mk, "image", None)
+            if not (self._keeps_images() and image is not None and self.calibration is not None
+                    and image.shape == ((self.calibration.height + 1) // 2, (self.calibration.width + 1) // 2)):
+                image = None            # (another camera's image would align with the wrong intrinsics)
             kf = Keyframe(int(mk.id), int(mk.stamp_ns), np.asarray(mk.T_map_base, float).copy(),
                           np.asarray(mk.points, np.float32), np.asarray(mk.fitness, np.float32), image=image)
             self.keyframes.append(kf)

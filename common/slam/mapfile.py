@@ -2,8 +2,8 @@
 
 - ``map/keyframes``: one ``flyslam.FlyMap`` message per keyframe (the bus's own schema, so the tools that
   show ``slam/map`` read it): id, stamp, T_map_base as position + xyzw quaternion, the population's
-  points (K, 3) float32 in that keyframe's base_link and their fitness (K,) float32, and for a camera-only
-  map the keyframe's grey left image at half resolution (its loops are aligned on it);
+  points (K, 3) float32 in that keyframe's base_link and their fitness (K,) float32, and the keyframe's
+  grey left image at half resolution when it kept one (its loops are aligned on it);
 - ``map/graph``: one ``flyslam.PoseEstimate`` per pose-graph edge, because an edge is exactly that:
   the pose of keyframe j (``child_frame_id = "keyframe/<j>"``) in keyframe i (``frame_id =
   "keyframe/<i>"``, or ``"map"`` for a prior), with its 6×6 covariance in flyslam's (x, y, z, rx, ry, rz)
@@ -51,7 +51,7 @@ class MapKeyframe:
     T_map_base: np.ndarray    # 4×4
     points: np.ndarray        # (K, 3) float32 in this keyframe's base_link
     fitness: np.ndarray       # (K,) float32
-    image: np.ndarray | None = None   # grey left image at half resolution (a camera-only map's keyframes)
+    image: np.ndarray | None = None   # grey left image at half resolution (photometric loops), or None
 
 
 @dataclass
@@ -85,7 +85,8 @@ def _keyframe_msg(kf) -> m.FlyMap:
                            f"{pts.shape} and {fit.shape}")
     p, q = pose_from_transform(T)
     image = getattr(kf, "image", None)
-    if image is not None and (np.asarray(image).ndim != 2 or np.asarray(image).dtype != np.uint8):
+    if image is not None and (np.asarray(image).ndim != 2 or np.asarray(image).dtype != np.uint8
+                              or np.asarray(image).size == 0):
         raise MapFileError(f"keyframe {kf.id}: image must be a grey uint8 H×W array, got {np.asarray(image).shape}")
     msg = m.Keyframe(id=int(kf.id), stamp_ns=int(kf.stamp_ns), position=p, orientation=q,
                      points=pts.astype(np.float32, copy=False), fitness=fit.astype(np.float32, copy=False),
