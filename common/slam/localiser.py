@@ -358,10 +358,7 @@ class FlyLocaliser:
             if T_new is None:
                 self.backend.loops.append(LoopClosure(old.id, kf.id, 0.0, False, f"photometric: {why}"))
                 return None
-            rel = invert(old.T_map_base) @ T_new
-            moved = float(np.linalg.norm(planar_from_transform(invert(kf.T_map_base) @ T_new)[:2]))
-            self.backend.loops.append(LoopClosure(old.id, kf.id, moved, True))
-            return self.backend.add_loop(old, kf, T_new, self.backend.tracked_cov(rel, kf))
+            return self._add_loop(old, kf, T_new, self.backend.tracked_cov(invert(old.T_map_base) @ T_new, kf))
         T_delta, sig, why = self._delta_loop(old, kf)
         if T_delta is None:
             if why is not None:        # (None: the views share too few flies to try)
@@ -370,10 +367,13 @@ class FlyLocaliser:
         return self._add_delta_loop(old, kf, T_delta, sig)
 
     def _add_delta_loop(self, old: Keyframe, kf: Keyframe, T_delta: np.ndarray, sig: np.ndarray) -> int:
-        handle = self.backend.add_loop(old, kf, T_delta, self._delta_covariance(np.diag(sig ** 2)))
-        moved = float(np.linalg.norm(planar_from_transform(invert(kf.T_map_base) @ T_delta)[:2]))
+        return self._add_loop(old, kf, T_delta, self._delta_covariance(np.diag(sig ** 2)))
+
+    def _add_loop(self, old: Keyframe, kf: Keyframe, T_new: np.ndarray, cov: np.ndarray) -> int:
+        """The loop factor old→kf saying kf is at T_new (map), recorded with how far it moves kf."""
+        moved = float(np.linalg.norm(planar_from_transform(invert(kf.T_map_base) @ T_new)[:2]))
         self.backend.loops.append(LoopClosure(old.id, kf.id, moved, True))
-        return handle
+        return self.backend.add_loop(old, kf, T_new, cov)
 
     def _delta_loop(self, old: Keyframe, kf: Keyframe):
         """(kf's pose in the map, its per-axis σ, '') from kf's flies registered against the old

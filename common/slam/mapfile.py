@@ -85,12 +85,12 @@ def _keyframe_msg(kf) -> m.FlyMap:
                            f"{pts.shape} and {fit.shape}")
     p, q = pose_from_transform(T)
     image = getattr(kf, "image", None)
-    if image is not None and (np.asarray(image).ndim != 2 or np.asarray(image).dtype != np.uint8
-                              or np.asarray(image).size == 0):
-        raise MapFileError(f"keyframe {kf.id}: image must be a grey uint8 H×W array, got {np.asarray(image).shape}")
+    image = None if image is None else np.ascontiguousarray(image)
+    if image is not None and (image.ndim != 2 or image.dtype != np.uint8 or image.size == 0):
+        raise MapFileError(f"keyframe {kf.id}: image must be a grey uint8 H×W array, got {image.shape}")
     msg = m.Keyframe(id=int(kf.id), stamp_ns=int(kf.stamp_ns), position=p, orientation=q,
                      points=pts.astype(np.float32, copy=False), fitness=fit.astype(np.float32, copy=False),
-                     image=None if image is None else np.ascontiguousarray(image))
+                     image=image)
     return m.FlyMap(keyframes=[msg], header=m.header(int(kf.id), int(kf.stamp_ns), m.MAP))
 
 

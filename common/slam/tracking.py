@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.fly.selection import fittest, spread_fittest
-from common.geometry import invert
+from common.geometry import invert, transform_points
 from common.registration.photometric import align_flies, coarse_candidates, pyramid
 
 # Lattice starts fully aligned when the motion is unknown (distinct basins of the coarse score).  A
@@ -154,7 +154,7 @@ def align_keyframes(old, new, K: np.ndarray, T_base_camera: np.ndarray, starts_m
     keyframe; :func:`best_alignment` picks).  (T_map_base, '') or (None, why)."""
     T_bc = np.asarray(T_base_camera, float)
     T_map_oldcam = old.T_map_base @ T_bc
-    points = (invert(T_bc) @ np.c_[old.points.astype(np.float64), np.ones(len(old.points))].T).T[:, :3]
+    points = transform_points(invert(T_bc), old.points.astype(np.float64))     # old camera's frame
     starts = [invert(T @ T_bc) @ T_map_oldcam for T in starts_map_base]        # T_newcam_oldcam
     al = best_alignment(points, old.fitness, pyramid(old.image, levels), pyramid(new.image, levels),
                         half_resolution_K(K), starts, min_inliers)
