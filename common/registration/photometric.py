@@ -62,10 +62,17 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     return T
 
 
-def pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
-    """float32 grey pyramid, level 0 = the image; each level halves the size (cv2.pyrDown)."""
+def pyramid(image: np.ndarray, levels: int, smooth_px: float = 0.0) -> list[np.ndarray]:
+    """float32 grey pyramid, level 0 = the image (Gaussian-smoothed by ``smooth_px`` when > 0); each
+    level halves the size (cv2.pyrDown).  Both images of an alignment need the same ``smooth_px``.
+
+    Why smooth: bilinear samples and 3×3 Sobel gradients of an unsmoothed image are biased towards whole
+    pixels, and sensor noise goes straight into the residuals; half a pixel of Gaussian (about what
+    pyrDown gives every coarser level) removes both at little cost to the texture."""
     img = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     out = [img.astype(np.float32)]
+    if smooth_px > 0:
+        out[0] = cv2.GaussianBlur(out[0], (0, 0), smooth_px)
     for _ in range(levels - 1):
         out.append(cv2.pyrDown(out[-1]))
     return out

@@ -47,6 +47,7 @@ class LocaliserConfig:
     photometric: bool = True            # track on the flies' image neighbourhoods when images come along
     photometric_flies: int = 2000       # fittest flies the tracking reference keeps
     photometric_levels: int = 4         # image pyramid levels (the start may be ~2^levels px off)
+    photometric_smooth_px: float = 0.5  # Gaussian σ on the full-resolution images before tracking (px)
     photometric_min_inliers: float = 0.5   # share of neighbourhoods within the robust threshold to accept
     photometric_reference_spacing: float = 0.1   # renew the reference after moving this × its median depth ...
     photometric_reference_angle_rad: float = np.deg2rad(5.0)   # ... or turning this much

@@ -617,7 +617,7 @@ class FlyLocaliser:
             if image.shape[:2] != (self.calibration.height, self.calibration.width):
                 raise LocaliserError(f"image is {image.shape[1]}x{image.shape[0]}, the calibration "
                                      f"{self.calibration.width}x{self.calibration.height}")
-            new_pyramid = pyramid(image, c.photometric_levels)
+            new_pyramid = pyramid(image, c.photometric_levels, c.photometric_smooth_px)
             view_flies = (positions_cam, fitness, image, new_pyramid)
 
         def finish(T_map_base, status, registered, cov, delta=float("nan"), may_add=True, links=()):
@@ -802,7 +802,7 @@ class FlyLocaliser:
                 return
         positions, fit, image, image_pyramid = view_flies
         self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
-                                         c.photometric_levels, image_pyramid)
+                                         c.photometric_levels, image_pyramid, smooth_px=c.photometric_smooth_px)
 
     def _poorly_fitted(self, fix) -> bool:
         """Whether a photometric fix's residual scale is well above that of the recent fixes: a wrong
@@ -848,7 +848,7 @@ class FlyLocaliser:
             return fix
         positions, fit, image, image_pyramid = view_flies
         back = reference_view(np.eye(4), positions, fit, image, c.photometric_flies, 0.3, c.photometric_levels,
-                              image_pyramid)
+                              image_pyramid, smooth_px=c.photometric_smooth_px)
         T_new_ref = reverse_motion(ref, back.points, back.weights, new_pyramid, self.calibration.K_rectified,
                                    c.photometric_min_inliers)
         if T_new_ref is None:
@@ -887,7 +887,7 @@ class FlyLocaliser:
         held = self._reference
         self._reference = reference_view(T_map_cam, positions, fit, image, c.photometric_flies, 0.3,
                                          c.photometric_levels, image_pyramid, K=self.calibration.K_rectified,
-                                         trusted_fraction=c.keep_fraction)
+                                         trusted_fraction=c.keep_fraction, smooth_px=c.photometric_smooth_px)
         fix, _ = self._photometric(new_pyramid, T_pred, T_pred, source)
         if fix is None and source != "odometry":
             fix, _ = self._photometric(new_pyramid, T_pred, T_pred, source, search=True)

@@ -33,20 +33,22 @@ class ReferenceView:
     image: np.ndarray               # (H, W) uint8 left image
     levels: int = 4
     _pyramid: list | None = field(default=None, repr=False)
+    smooth_px: float = 0.0          # the pyramid's level-0 smoothing (photometric.pyramid)
 
     def pyramid(self) -> list[np.ndarray]:
         if self._pyramid is None:
-            self._pyramid = pyramid(self.image, self.levels)
+            self._pyramid = pyramid(self.image, self.levels, self.smooth_px)
         return self._pyramid
 
 
 def reference_view(T_map_cam, positions_cam, fitness, image, count: int, near_m: float, levels: int,
                    image_pyramid: list[np.ndarray] | None = None, K: np.ndarray | None = None,
-                   trusted_fraction: float = 1.0) -> ReferenceView:
+                   trusted_fraction: float = 1.0, smooth_px: float = 0.0) -> ReferenceView:
     """``count`` flies in front of the camera (beyond ``near_m``) with their image (and its pyramid,
     when the caller already built it from that image).  With the intrinsics ``K`` they are the
     trusted (``fittest(fitness, trusted_fraction)``) flies spread over the image
-    (common.fly.selection.spread_fittest), else simply the fittest."""
+    (common.fly.selection.spread_fittest), else simply the fittest.  ``image_pyramid``, when given, was
+    built with ``smooth_px``."""
     P = np.asarray(positions_cam, np.float32)
     f = np.asarray(fitness, np.float32)
     ok = np.isfinite(P).all(1) & np.isfinite(f) & (f > 0) & (P[:, 2] > near_m)
@@ -62,7 +64,7 @@ def reference_view(T_map_cam, positions_cam, fitness, image, count: int, near_m:
         v = K[1, 1] * P[trusted, 1] / z + K[1, 2]
         keep = trusted[spread_fittest(u, v, f[trusted], count, grey.shape[1], grey.shape[0])]
     return ReferenceView(np.asarray(T_map_cam, float).copy(), P[keep].copy(), f[keep].copy(),
-                         np.ascontiguousarray(grey), levels, image_pyramid)
+                         np.ascontiguousarray(grey), levels, image_pyramid, smooth_px)
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -150,8 +152,9 @@ def align_keyframes(old, new, K: np.ndarray, T_base_camera: np.ndarray, starts_m
                     levels: int, min_inliers: float):
     """The new keyframe's base pose in the map from the old keyframe's flies aligned into the new one's
     image (both keyframes' ``image``: half-resolution grey, so ``K`` is halved here and ``levels``
-    counts from half resolution), from each of ``starts_map_base`` (candidate poses of the new
-    keyframe; :func:`best_alignment` picks).  (T_map_base, '') or (None, why)."""
+    counts from half resolution; pyrDown smoothed them already, so no ``smooth_px``), from each of
+    ``starts_map_base`` (candidate poses of the new keyframe; :func:`best_alignment` picks).
+    (T_map_base, '') or (None, why)."""
     T_bc = np.asarray(T_base_camera, float)
     T_map_oldcam = old.T_map_base @ T_bc
     points = transform_points(invert(T_bc), old.points.astype(np.float64))     # old camera's frame
