@@ -28,6 +28,10 @@ from common.slam.config import ArchiveConfig
 from common.slam.posegraph import PoseGraph, PoseGraphError, planar_covariance
 
 _MIN_SIGMA = (0.005, np.deg2rad(0.05))    # floor on a factor's position (m) and rotation (rad) sigma
+# Loops outvoted one after another are tried again together once this many agree (ORB-SLAM asks a loop
+# to be consistent over three keyframes): one wrong loop the graph accepted must not outvote, one at a
+# time, every correct loop that follows it.
+LOOP_GROUP = 3
 
 
 @dataclass
@@ -70,6 +74,8 @@ class KeyframeGraph:
         self.graph = PoseGraph(robust="cauchy", planar=planar)
         self.archive: dict = {}            # id -> Keyframe, the keyframes kept (see ArchiveConfig)
         self.loops: list[LoopClosure] = []
+        # the loop factors outvoted since the last accepted loop, newest last: (Edge, index in loops)
+        self.outvoted: list = []
         self.dropped = 0                   # keyframes dropped by the size bound
         self._last_id: int | None = None
         self.camera = camera               # (fx, baseline, T_camera_base): the camera's measurement model
@@ -237,5 +243,11 @@ class KeyframeGraph:
             return True
         return False
 
+    def outvoted_group(self) -> list:
+        """The last LOOP_GROUP outvoted loops (Edge, loop index) whose keyframes are all still in the
+        graph, or [] when there are fewer."""
+        group = [(e, i) for e, i in self.outvoted[-LOOP_GROUP:] if e.i in self.archive and e.j in self.archive]
+        return group if len(group) == LOOP_GROUP else []
 
-__all__ = ["ArchiveConfig", "KeyframeGraph", "LoopClosure", "PoseGraphError"]
+
+__all__ = ["LOOP_GROUP", "ArchiveConfig", "KeyframeGraph", "LoopClosure", "PoseGraphError"]
