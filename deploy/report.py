@@ -53,7 +53,9 @@ def pipeline_summary(out: Path) -> dict:
     summary["frames_used_by_evolver"] = evolver.get("progress")
     rates = evolver.get("rates", {})
     summary["frames_skipped"] = int(rates.get("frames_skipped", 0)) if rates else None
-    summary["generations_per_s"] = round(rates["generations_per_s"], 1) if "generations_per_s" in rates else None
+    # the mean while frames came (the last heartbeat's own rate is taken after the frames stopped)
+    rate = rates.get("generations_per_s_while_frames", rates.get("generations_per_s"))
+    summary["generations_per_s"] = round(rate, 1) if rate is not None else None
     summary["frames_degraded"] = evolver.get("counters", {}).get("degraded_frames") if rates else None   # starved of CPU
     summary["restarts"] = {name: s.get("restarts", 0) for name, s in services.items() if s.get("restarts")}
     est_path, gt_path = out / "estimated.tum", out / "truth.tum"

@@ -59,10 +59,15 @@ def body(node, args) -> int:
     trace = node.publisher(S.TRACE_EVOLVER) if args.trace else None
     governor = run.governor()
     last_publish, rest_until, window = 0.0, 0.0, (time.monotonic(), 0)
+    frames_span = None        # (time, generation) at the first frame and at the newest
     while not node.stopping:
         if time.monotonic() - window[0] >= 1.0:
             node.rates["generations_per_s"] = (core.generation - window[1]) / (time.monotonic() - window[0])
             window = (time.monotonic(), core.generation)
+            if frames_span is not None and frames_span[1][0] > frames_span[0][0]:
+                # the run's mean while frames came: the last second's rate is 0 once they stop
+                (t0, g0), (t1, g1) = frames_span
+                node.rates["generations_per_s_while_frames"] = (g1 - g0) / (t1 - t0)
             report_governor(node, governor)
         now = time.monotonic()
         resting = now < rest_until                 # the duty cycle's pause after a generation between frames
@@ -75,6 +80,8 @@ def body(node, args) -> int:
                     core.on_calibration(calibration.get())
                 if publish_frame(node, core.on_frame(frame, settle_scale=governor.settle_scale()), frame, out, trace):
                     last_publish = time.monotonic()
+                    newest = (last_publish, core.generation)
+                    frames_span = (frames_span[0] if frames_span else newest, newest)
                     node.rates["frames_skipped"] = float(frames.skipped)
                     node.counters.add("degraded_frames", int(governor.degraded))
         elif not idle:   # between frames: evolve with a duty cycle, republish at the configured rate

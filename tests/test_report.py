@@ -62,3 +62,12 @@ def test_a_robot_inside_the_target_radius_has_reached_it_whatever_the_last_comma
     (tmp_path / "out").mkdir()
     assert _run_folder(tmp_path / "in", 1.75, "following field")["target"] == "reached"
     assert _run_folder(tmp_path / "out", 1.0, "no path")["target"] == "not reached: last command 'no path'"
+
+
+def test_summary_gives_the_evolvers_rate_while_frames_came_not_after(tmp_path):
+    # the last heartbeat comes after the frames stopped: its own last-second rate is 0
+    (tmp_path / "run.json").write_text(json.dumps({"services": {"evolver": {"progress": 600, "rates": {
+        "generations_per_s": 0.0, "generations_per_s_while_frames": 142.46}}}}))
+    s = pipeline_summary(tmp_path)
+    assert s["generations_per_s"] == 142.5
+    assert "generations/s        142.5" in format_pipeline_summary(s)
