@@ -49,7 +49,10 @@ def pipeline_summary(out: Path) -> dict:
     services = run.get("services", {})
     sim = services.get("sim", {})
     evolver = services.get("evolver", {})
-    summary["frames"] = sim.get("progress")
+    replay = services.get("replay", {})
+    # the simulator's progress is frames; a replay's is messages, of which it counts the frames
+    summary["frames"] = sim.get("progress") if sim else replay.get("counters", {}).get("frames_replayed")
+    summary["frames_source"] = "replayed" if not sim and replay else "rendered"
     summary["frames_used_by_evolver"] = evolver.get("progress")
     rates = evolver.get("rates", {})
     summary["frames_skipped"] = int(rates.get("frames_skipped", 0)) if rates else None
@@ -105,7 +108,7 @@ def format_pipeline_summary(s: dict) -> str:
     def v(key, unit=""):
         return "-" if s.get(key) is None else f"{s[key]}{unit}"
     lines = ["", "pipeline summary",
-             f"  frames rendered      {v('frames')}",
+             f"  frames {s.get('frames_source', 'rendered'):13s} {v('frames')}",
              f"  frames evolved       {v('frames_used_by_evolver')}  (skipped: {v('frames_skipped')}; "
              f"degraded, the evolver starved of CPU: {v('frames_degraded')})",
              f"  generations/s        {v('generations_per_s')}"]

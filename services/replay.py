@@ -95,6 +95,8 @@ def body(node, args) -> int:
                 truth.append(m.payload)
             published += 1
             node.progress += 1
+            if stream == "stereo/frame":
+                node.counters.add("frames_replayed")
         passes += 1
         if args.truth_tum and truth:
             _write_truth(args.truth_tum, truth)

@@ -71,3 +71,12 @@ def test_summary_gives_the_evolvers_rate_while_frames_came_not_after(tmp_path):
     s = pipeline_summary(tmp_path)
     assert s["generations_per_s"] == 142.5
     assert "generations/s        142.5" in format_pipeline_summary(s)
+
+
+def test_summary_counts_a_replays_frames_not_its_messages(tmp_path):
+    (tmp_path / "run.json").write_text(json.dumps({"services": {
+        "replay": {"progress": 201, "counters": {"frames_replayed": 100}},
+        "evolver": {"progress": 95, "rates": {"frames_skipped": 5.0}}}}))
+    s = pipeline_summary(tmp_path)
+    assert s["frames"] == 100
+    assert "frames replayed      100" in format_pipeline_summary(s)
