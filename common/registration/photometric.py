@@ -78,6 +78,15 @@ def pyramid(image: np.ndarray, levels: int, smooth_px: float = 0.0) -> list[np.n
     return out
 
 
+def level_intrinsics(K: np.ndarray, level: int) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of pyramid level ``level`` (:func:`pyramid`): each level halves the focal length,
+    and a pixel centre c maps to (c + 0.5)/2 − 0.5 (pyrDown itself centres on c/2, a quarter pixel
+    away; the finest level corrects what a coarse one is off)."""
+    s = 0.5 ** level
+    return (float(K[0, 0] * s), float(K[1, 1] * s), float((K[0, 2] + 0.5) * s - 0.5),
+            float((K[1, 2] + 0.5) * s - 0.5))
+
+
 def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear samples of img at float pixel coordinates (any shape); outside → NaN."""
     shape, n = u.shape, u.size
@@ -324,7 +333,6 @@ _REFERENCE_CACHE_SIZE = 2
 def _level_terms(P_all, w_all, ref_pyramid, K, min_flies):
     """Per pyramid level, coarse to fine: (level, flies, weights, fx, fy, cx, cy, valid_ref, ref0, J, A),
     everything of the Gauss-Newton step that comes from the reference view alone."""
-    fx0, fy0, cx0, cy0 = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     rng = np.random.default_rng(0)
     out = []
     for level in range(len(ref_pyramid) - 1, -1, -1):
@@ -335,9 +343,7 @@ def _level_terms(P_all, w_all, ref_pyramid, K, min_flies):
             P, w = P_all[pick], w_all[pick]
         else:
             P, w = P_all, w_all
-        s = 0.5 ** level
-        fx, fy = float(fx0 * s), float(fy0 * s)
-        cx, cy = float((cx0 + 0.5) * s - 0.5), float((cy0 + 0.5) * s - 0.5)
+        fx, fy, cx, cy = level_intrinsics(K, level)
         Iref = ref_pyramid[level]
         u, v = _project(P, fx, fy, cx, cy)
         uo = u[:, None] + PATTERN[None, :, 0]
@@ -476,9 +482,7 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
         pick = np.random.default_rng(0).choice(len(P), max_flies, replace=False)
         P, w = P[pick], w[pick]
     level = len(ref_pyramid) - 1
-    s = 0.5 ** level
-    fx, fy = K[0, 0] * s, K[1, 1] * s
-    cx, cy = (K[0, 2] + 0.5) * s - 0.5, (K[1, 2] + 0.5) * s - 0.5
+    fx, fy, cx, cy = level_intrinsics(K, level)
     # the fitter half's median depth: young flies, drawn uniform in 1/z, sit mostly near the camera
     fit = w >= np.median(w)
     z_med = float(np.median(P[fit, 2]))

@@ -15,7 +15,7 @@ import numpy as np
 
 from common.fly.selection import fittest, spread_fittest
 from common.geometry import invert, transform_points
-from common.registration.photometric import align_flies, coarse_candidates, pyramid
+from common.registration.photometric import align_flies, coarse_candidates, level_intrinsics, pyramid
 
 # Lattice starts fully aligned when the motion is unknown (distinct basins of the coarse score).  A
 # later start wins only with a clearly better fit: on one plane the motions that map it alike fit
@@ -139,12 +139,9 @@ def photometric_fix(view: ReferenceView, new_pyramid: list[np.ndarray], K: np.nd
 
 
 def half_resolution_K(K: np.ndarray) -> np.ndarray:
-    """Intrinsics of an image halved by cv2.pyrDown, in the convention of photometric.pyramid's levels
-    (c → (c + 0.5) / 2 − 0.5; pyrDown itself centres on c / 2, a quarter pixel away, which moves an
-    alignment by millimetres)."""
+    """Intrinsics of an image halved by cv2.pyrDown: those of photometric.pyramid's level 1."""
     Kh = np.array(K, dtype=float, copy=True)
-    Kh[0, 0], Kh[1, 1] = K[0, 0] / 2, K[1, 1] / 2
-    Kh[0, 2], Kh[1, 2] = (K[0, 2] + 0.5) / 2 - 0.5, (K[1, 2] + 0.5) / 2 - 0.5
+    Kh[0, 0], Kh[1, 1], Kh[0, 2], Kh[1, 2] = level_intrinsics(K, 1)
     return Kh
 
 
