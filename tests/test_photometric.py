@@ -318,3 +318,18 @@ def test_a_cars_step_forward_is_tracked_to_its_full_length(step_m):
     assert res.ok
     assert abs(moved[2] / step_m - 1) < 0.003
     assert np.hypot(moved[0], moved[1]) < 0.005
+
+
+def test_the_residual_scale_median_is_numpys_to_the_bit():
+    """The Gauss-Newton's robust scale σ̂ comes from photometric._median (histogram, then sorting only
+    the middle bins): the same value as np.median, so the tracked trajectory does not change with it.
+    Odd and even counts, ties, zeros, heavy tails, one huge outlier."""
+    from common.registration.photometric import _median
+    rng = np.random.default_rng(0)
+    counts, picked = np.empty(4096, np.int64), np.empty(20_000)
+    cases = [np.abs(rng.standard_normal(18_000)) * 3, np.abs(rng.standard_t(1.5, 17_999)),
+             np.round(np.abs(rng.standard_normal(9_001)) * 4) / 4, np.zeros(450), np.full(451, 2.5),
+             np.r_[np.abs(rng.standard_normal(999)), 1e12], np.array([0.7]), np.array([0.2, 0.9])]
+    cases += [np.abs(rng.standard_normal(int(n))) * rng.uniform(0.1, 50) for n in rng.integers(2, 20_000, 40)]
+    for values in cases:
+        assert _median(values, len(values), counts, picked) == np.median(values)
