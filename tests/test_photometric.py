@@ -6,13 +6,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from numba import njit
 
 from common.geometry import invert, make_transform, rot_x, rot_y, so3_log
 from common.registration.photometric import AlignmentError, align_flies, coarse_candidates, coarse_search, pyramid
 
 W, H, F = 480, 200, 300.0
 K = np.array([[F, 0, W / 2 - 0.5], [0, F, H / 2 - 0.5], [0, 0, 1.0]])
-# a slanted textured plane n·p = d in the reference camera frame: 6 m deep on the left, 14 m on the right
+# a slanted textured plane n·p = d in the reference camera frame: 7.2 m deep on the left, 16.6 m on the right
 NORMAL = np.array([-0.5, 0.0, 1.0]) / np.linalg.norm([-0.5, 0.0, 1.0])
 D = 10.0 * NORMAL[2]
 # texture at several scales, as real surfaces have: fine grain and blobs visible at the coarsest level
@@ -305,18 +306,18 @@ def test_half_a_pixel_of_smoothing_aligns_noisy_images_better():
 @pytest.mark.parametrize("step_m", [0.85, 1.7])
 def test_a_cars_step_forward_is_tracked_to_its_full_length(step_m):
     """A car's step between frames (0.85 m at KITTI's 10 Hz, 1.7 m at 5 Hz): the slanted plane's texture
-    grows by 6-40 % between the images and the 3×3 neighbourhoods are compared unwarped, yet the step's
-    length comes out unbiased: a scale error here is a drift in every trajectory on a car."""
+    grows by 6-13 % (12-30 % at 1.7 m) between the images and the 3×3 neighbourhoods are compared
+    unwarped, yet the step's length comes out unbiased: a scale error here is a drift in every
+    trajectory on a car."""
     T_ref_new = make_transform(np.eye(3), [0.0, 0.0, step_m])
     ref, new = pyramid(render(np.eye(4)), 4, 0.5), pyramid(render(T_ref_new), 4, 0.5)
     P = flies_on_the_plane()
-    start = make_transform(np.eye(3), [0.0, 0.0, -0.9 * step_m])      # a prediction 10 % short
-    res = align_flies(P, np.ones(len(P)), ref, new, K, start)
+    res = align_flies(P, np.ones(len(P)), ref, new, K, np.eye(4))
     moved = invert(res.T)[:3, 3]                                      # the new camera in the reference
     print(f"\nforward {moved[2]:.4f} m of {step_m}, sideways {1000 * moved[0]:+.1f} mm, "
           f"vertical {1000 * moved[1]:+.1f} mm")
     assert res.ok
-    assert abs(moved[2] / step_m - 1) < 0.003
+    assert abs(moved[2] / step_m - 1) < 0.0015
     assert np.hypot(moved[0], moved[1]) < 0.005
 
 
@@ -333,3 +334,13 @@ def test_the_residual_scale_median_is_numpys_to_the_bit():
     cases += [np.abs(rng.standard_normal(int(n))) * rng.uniform(0.1, 50) for n in rng.integers(2, 20_000, 40)]
     for values in cases:
         assert _median(values, len(values), counts, picked) == np.median(values)
+    # Outside the histogram's domain it falls back to numba's own np.median (which, unlike numpy's, does
+    # not return NaN for a NaN), and never indexes outside its histogram (numba does not check).
+    numba_median = njit(lambda a: np.median(a))
+    for values in (np.array([np.nan, 1.0, 2.0]), np.array([5.0, np.nan, 1.0, 0.5]), np.array([3.0, -1.0, 2.0]),
+                   np.array([1.0, np.inf, 2.0, np.nan]), np.array([1e-310, 2e-310, 3e-310]),
+                   np.array([0.0, 0.0, 1e-310, 0.0]), np.array([5e-307, 1e-306, 2e-307])):
+        guard = np.full(3 * 4096, -7, np.int64)
+        got = _median(values, len(values), guard[4096:8192], picked)
+        assert got == numba_median(values) or (np.isnan(got) and np.isnan(numba_median(values)))
+        assert np.all(guard[:4096] == -7) and np.all(guard[8192:] == -7)
