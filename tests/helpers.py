@@ -51,6 +51,19 @@ def wait_until(predicate, timeout: float, poll: float = 0.05) -> bool:
     return predicate()
 
 
+def resend_until(send, predicate, timeout: float = 30, every: float = 1.0) -> bool:
+    """Call ``send()`` every ``every`` seconds until ``predicate()`` holds, for at most ``timeout``
+    seconds.  A service drops what reaches it before it is ready (a frame before its calibration, a
+    population while it loads its kernels), as it would a camera's: a test sends again, as a camera does."""
+    deadline = time.monotonic() + timeout
+    while True:
+        send()
+        if wait_until(predicate, min(every, max(0.0, deadline - time.monotonic()))):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+
+
 def write_source_recording(path: Path, frames: int = 30, size=(64, 48), seed: int = 0) -> list[tuple[str, bytes]]:
     """A small recording of what a live source publishes; returns the (key, payload) list in order."""
     rng = np.random.default_rng(seed)

@@ -9,7 +9,7 @@ from common import messages as m
 from common.bus import BusOptions, Node
 from common.camera import StereoCalibration
 from common.images import make_frame
-from tests.helpers import hub, start_module, stop, wait_until
+from tests.helpers import hub, resend_until, start_module, stop, wait_until
 
 
 def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_path, zenoh_port):
@@ -28,10 +28,8 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
             rng = np.random.default_rng(0)
             img = rng.integers(0, 255, (72, 96, 3), dtype=np.uint8)
             # Frame 1 until the evolver has the latched calibration (a frame before it is dropped).
-            deadline = time.monotonic() + 30
-            while not any(t.header.seq == 1 for t in traces) and time.monotonic() < deadline:
-                frames.publish(make_frame(img, np.roll(img, -4, axis=1), 1, time.time_ns()))
-                wait_until(lambda: any(t.header.seq == 1 for t in traces), 0.5)
+            resend_until(lambda: frames.publish(make_frame(img, np.roll(img, -4, axis=1), 1, time.time_ns())),
+                         lambda: any(t.header.seq == 1 for t in traces), every=0.5)
             assert any(t.header.seq == 1 for t in traces), "no trace for the first frame"
             for seq in range(2, 7):
                 frames.publish(make_frame(img, np.roll(img, -4, axis=1), seq, time.time_ns()))

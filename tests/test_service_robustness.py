@@ -9,7 +9,7 @@ from common import messages as m
 from common.bus import BusOptions, Node
 from common.camera import StereoCalibration
 from common.images import make_frame
-from tests.helpers import hub, start_module, stop, wait_until
+from tests.helpers import hub, resend_until, start_module, stop, wait_until
 
 
 def _garbage(rng, valid: bytes) -> bytes:
@@ -39,14 +39,12 @@ def test_evolver_survives_and_counts_a_flood_of_bad_payloads(tmp_path, zenoh_por
             img = rng.integers(0, 255, (72, 96, 3), dtype=np.uint8)
 
             def evolved(seq, since=0) -> bool:
-                """Send frame ``seq`` until a population of it comes back (at most 30 s).  The calibration
-                and a frame travel on two keys with no order between them: a frame taken before its
-                calibration is applied is refused ('no calibration'), as a camera's first frame may be."""
-                for _ in range(30):
-                    frames.publish(make_frame(img, np.roll(img, -4, axis=1), seq, time.time_ns()))
-                    if wait_until(lambda: any(p.source_seq == seq for p in populations[since:]), 1.0):
-                        return True
-                return False
+                """Frame ``seq`` sent until a population of it comes back: the calibration and a frame
+                travel on two keys with no order between them, and a frame taken before its calibration
+                is applied is refused ('no calibration')."""
+                return resend_until(lambda: frames.publish(make_frame(img, np.roll(img, -4, axis=1), seq,
+                                                                      time.time_ns())),
+                                    lambda: any(p.source_seq == seq for p in populations[since:]))
 
             assert evolved(1), "no population for a valid frame"
             valid = {"stereo/calibration": m.encode(m.calibration_to_msg(calib, 2, 2)),

@@ -283,9 +283,9 @@ def _compose_inverse_increment(T, xi):
 
 @njit(cache=True)
 def _median(values, n, counts, picked):
-    """np.median(values[:n]) to the bit, about 3× faster on the Gauss-Newton's 18 000 |residuals|: a
-    histogram of ``counts.size`` bins over [0, max] finds the bins holding the middle elements, and only
-    those are sorted.  ``picked`` holds n.  A NaN, a negative or an infinite value, or a largest value
+    """np.median(values[:n]) to the bit, without sorting or selecting over all n: a histogram of
+    ``counts.size`` bins over [0, max] finds the bins holding the middle elements, and only those are
+    sorted.  ``picked`` holds n.  A NaN, a negative or an infinite value, or a largest value
     so small that 4095 / max overflows, falls back to np.median: numba does not check indices, and the
     histogram must never be indexed outside."""
     top = 0.0
