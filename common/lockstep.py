@@ -24,8 +24,11 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from common import messages as m
+from common.camera import CalibrationError, StereoCalibration
 from common.fly import EvolverConfig
 from common.fly.core import EvolverCore
+from common.fly.evolver import images_ahead
+from common.fly.fitness import FrameImages, ImageError
 from common.geometry import planar_pose
 from common.images import COMPRESSED_ENCODINGS, frame_images
 from common.pose_buffer import PoseBuffer
@@ -38,25 +41,37 @@ WHEELS_LOOKAHEAD_NS = 1_000_000_000
 _STREAMS = ("stereo/calibration", "odom/wheels", "truth/pose", "stereo/frame")
 
 
-def _decoded(messages: Iterator[RecordedMessage], ahead: int = 2) -> Iterator[tuple[str, object]]:
-    """(stream, decoded message or None) for each recorded message, stereo frames already decompressed
-    to raw images by a worker thread up to ``ahead`` frames in advance: OpenCV's decoders release the
-    GIL, so the next frames decode on the core the evolver's serial loops leave idle. Order is kept."""
-    def decode(rec: RecordedMessage):
+def _decoded(messages: Iterator[RecordedMessage], evolver_config: EvolverConfig,
+             ahead: int = 2) -> Iterator[tuple[str, object, FrameImages | None]]:
+    """(stream, decoded message or None, prepared images or None) for each recorded message, in order.
+
+    Stereo frames are decompressed to raw images by a worker thread up to ``ahead`` frames in advance,
+    and their fitness images prepared there too (``images_ahead`` with the calibration recorded before
+    them): OpenCV and the numba kernels release the GIL, so the next frames get ready on the core the
+    evolver's serial loops leave idle.  The evolver uses the images only for the arrays they were
+    computed from (common.fly.fitness.prepare_frame), so the result is the same, to the bit."""
+    def decode(rec: RecordedMessage, calib: StereoCalibration | None):
         try:
             msg = m.decode(rec.payload)
         except m.DecodeError:
-            return None
-        if isinstance(msg, m.StereoFrame) and msg.encoding in COMPRESSED_ENCODINGS:
-            try:
-                left, right = frame_images(msg)
-            except m.DecodeError:
-                return msg          # EvolverCore reports it as it would live
+            return None, None
+        if not isinstance(msg, m.StereoFrame):
+            return msg, None
+        try:
+            left, right = frame_images(msg)
+        except m.DecodeError:
+            return msg, None          # EvolverCore reports it as it would live
+        if msg.encoding in COMPRESSED_ENCODINGS:
             msg = replace(msg, left=left, right=right, encoding="mono8" if left.ndim == 2 else "rgb8")
-        return msg
+        try:
+            images = None if calib is None else images_ahead(calib, evolver_config, left, right)
+        except (ImageError, CalibrationError):
+            images = None             # the evolver finds out and reports it itself
+        return msg, images
 
     pending: deque = deque()
     frames_queued = 0
+    calib = None
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-decode")
     try:
         for rec in messages:
@@ -64,14 +79,20 @@ def _decoded(messages: Iterator[RecordedMessage], ahead: int = 2) -> Iterator[tu
             if stream not in _STREAMS:
                 continue
             is_frame = stream == "stereo/frame"
-            pending.append((stream, pool.submit(decode, rec) if is_frame else decode(rec)))
+            item = pool.submit(decode, rec, calib) if is_frame else decode(rec, None)
+            if stream == "stereo/calibration" and isinstance(item[0], m.StereoCalibrationMsg):
+                try:
+                    calib = m.calibration_from_msg(item[0])
+                except CalibrationError:
+                    calib = None
+            pending.append((stream, item))
             frames_queued += is_frame
             while pending and (frames_queued > ahead or pending[0][0] != "stereo/frame"):
                 stream, item = pending.popleft()
                 frames_queued -= stream == "stereo/frame"
-                yield stream, item.result() if isinstance(item, Future) else item
+                yield (stream, *(item.result() if isinstance(item, Future) else item))
         for stream, item in pending:
-            yield stream, item.result() if isinstance(item, Future) else item
+            yield (stream, *(item.result() if isinstance(item, Future) else item))
     finally:        # a caller that stops early (max_frames) does not wait for frames it will not use
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -130,7 +151,7 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
     calibration = None
     first_frame = True
     t0 = time.perf_counter()
-    for stream, msg in _decoded(chain(ahead, messages)):
+    for stream, msg, images in _decoded(chain(ahead, messages), evolver.config):
         if msg is None:
             continue
         if stream == "stereo/calibration":
@@ -144,7 +165,7 @@ def run_lockstep(messages: Iterable[RecordedMessage], generations_per_frame: int
         elif stream == "stereo/frame":
             if calibration is not None and not localiser.has_calibration:
                 localiser.on_calibration(calibration)
-            frame = evolver.on_frame(msg)
+            frame = evolver.on_frame(msg, images=images)
             if frame.population is None:
                 continue
             if first_frame:      # the map starts from a converged population, as it does live

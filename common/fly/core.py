@@ -33,6 +33,7 @@ from common import messages as m
 from common.camera import CalibrationError, StereoCalibration
 from common.fly.config import EvolverConfig
 from common.fly.evolver import FlyEvolver
+from common.fly.fitness import FrameImages
 from common.fly.scheduling import CpuGovernor, SettlePolicy, population_quality, settle
 from common.geometry import invert
 from common.images import frame_images
@@ -172,7 +173,10 @@ class EvolverCore(LatchedInputs):
                      calib.baseline, self.config.population)
         return None
 
-    def on_frame(self, frame: m.StereoFrame, settle_scale: float = 1.0) -> FrameResult:
+    def on_frame(self, frame: m.StereoFrame, settle_scale: float = 1.0,
+                 images: FrameImages | None = None) -> FrameResult:
+        """Move the flies by the odometry, load the frame and settle (see the module doc).  ``images``:
+        ``common.fly.evolver.images_ahead`` of this frame's decoded images, when a caller prepared them."""
         reason = self._apply_calibration()
         if reason is not None:
             return FrameResult(reason=reason)
@@ -197,7 +201,7 @@ class EvolverCore(LatchedInputs):
             evolver.move_flies(invert(T_odom_cam) @ self._last_T_odom_cam, rescore=False)
         if T_odom_cam is not None:
             self._last_T_odom_cam = T_odom_cam
-        evolver.set_images(left, right)
+        evolver.set_images(left, right, images)
         self._current = (frame.header.seq, stamp, T_odom_cam)
         self._left_grey = left if left.ndim == 2 else cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
         t_ready = self.clock()

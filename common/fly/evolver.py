@@ -37,7 +37,8 @@ import numpy as np
 
 from common.camera import StereoCalibration
 from common.fly.config import EvolverConfig
-from common.fly.fitness import OUTSIDE_FITNESS, PreparedFrame, image_fitness, prepare_frame
+from common.fly.fitness import (OUTSIDE_FITNESS, FrameImages, PreparedFrame, image_fitness, prepare_frame,
+                                prepare_images)
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
                                   camera_vector, cell_order, insert_offspring, make_offspring,
                                   permuted, plan_batch, project_uvd)
@@ -61,6 +62,15 @@ class FitnessTermError(ValueError):
 
 class NoImagesError(RuntimeError):
     """step() was called before set_images()."""
+
+
+def images_ahead(calib: StereoCalibration, config: EvolverConfig, left: np.ndarray,
+                 right: np.ndarray) -> FrameImages:
+    """The share of ``FlyEvolver.set_images``'s work that depends on the images alone, for ``config``:
+    thread-safe, so the next frame can be prepared while the evolver works on this one."""
+    c = config
+    return prepare_images(calib, left, right, c.neighbourhood, c.mean_removal_px, c.gradient_window,
+                          c.gradient_min_half, c.gradient_epipolar)
 
 
 class FlyEvolver:
@@ -124,11 +134,12 @@ class FlyEvolver:
         return self._frame
 
     # ------------------------------------------------------------------------------- inputs
-    def set_images(self, left: np.ndarray, right: np.ndarray) -> None:
+    def set_images(self, left: np.ndarray, right: np.ndarray, images: FrameImages | None = None) -> None:
         """Load a new rectified stereo frame (H×W×3 uint8 RGB or H×W mono) and re-score the population.
 
         With ``noise_sigma=None`` the image noise is estimated on the first frame and re-estimated every
         ``_NOISE_REFRESH_FRAMES`` frames (a camera's noise changes slowly; the estimate costs a few ms).
+        ``images``: :func:`images_ahead` of these arrays, computed beforehand (e.g. in another thread).
         """
         c = self.config
         sigma = c.noise_sigma
@@ -137,7 +148,7 @@ class FlyEvolver:
             self._frames_since_noise += 1
         frame = prepare_frame(self.calib, left, right, c.neighbourhood, sigma, c.ssd_floor_scale,
                               c.gradient_saturation, c.window_sigma, c.mean_removal_px, c.gradient_window,
-                              c.gradient_min_half, c.gradient_epipolar)
+                              c.gradient_min_half, c.gradient_epipolar, images)
         if c.noise_sigma is None and sigma is None:
             self._noise_sigma, self._frames_since_noise = frame.noise_sigma, 1
         self._frame = frame

@@ -75,7 +75,7 @@ def estimate_noise_sigma(grey: np.ndarray, flat_fraction: float = 0.3) -> float:
     return float(np.sqrt(np.pi / 2) * lap[flat].mean(dtype=np.float64) / 6.0)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _laplacian_and_gradient_quarter(g):
     """|Immerkær Laplacian difference| and |Sobel x| + |Sobel y| at odd rows and columns (interior)."""
     H, W = g.shape
@@ -122,7 +122,7 @@ def gradient_energy(sq_grad: np.ndarray, n: int, min_half_window: bool) -> np.nd
     return _min_half_window_mean(padded, h, np.empty(sq.shape, np.float32))
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def _min_half_window_mean(padded, h, out):
     """``out`` (H×W) = per pixel, the least mean of the image over its four (2h+1)×(h+1) half-windows;
     ``padded`` is the image with h replicated pixels on every side.  Horizontal (2h+1)-sums of every
@@ -165,7 +165,7 @@ def _min_half_window_mean(padded, h, out):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _minus(img, mean, remove, out):
     """``out`` (float32, img's shape) = ``img − mean`` (both uint8, same shape), or just ``img``."""
     a = img.ravel()
@@ -180,7 +180,7 @@ def _minus(img, mean, remove, out):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _grey(img):
     """Channel mean of an H×W×C uint8 image, as float32 (the sum of a pixel's integers is exact in
     float32, so the order of the channels does not change the result)."""
@@ -200,16 +200,29 @@ def _grey(img):
     return out.reshape(H, W)
 
 
-def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
-                  noise_sigma: float | None, ssd_floor_scale: float, gradient_saturation: float,
-                  window_sigma: float | None, mean_removal_px: int | None = None,
-                  gradient_window: int | None = None, min_half_window: bool = True,
-                  epipolar_gradient: bool = True) -> PreparedFrame:
-    """Convert a stereo pair once per frame: float images, noise floor and the gradient normaliser map.
+@dataclass
+class FrameImages:
+    """The part of a :class:`PreparedFrame` that depends on the images and the settings in ``key`` alone,
+    not on the noise estimate (the evolver's state), so it can be computed ahead in another thread
+    (common.lockstep does, while the evolver works on the frame before).  ``sources`` are the uint8
+    images it was computed from: ``prepare_frame`` uses it only for those very arrays."""
+    left: np.ndarray        # H×W×C float32, local mean removed when asked
+    right: np.ndarray
+    grey: np.ndarray        # H×W float32 left image (channel mean)
+    energy: np.ndarray      # H×W float32 gradient energy of ``grey`` over the window
+    key: tuple
+    sources: tuple
 
-    ``mean_removal_px`` (odd) subtracts each image's local mean over that box before matching, which makes
-    the SSD insensitive to exposure/gain differences between the two cameras (a cheap zero-mean SSD).
-    """
+
+def _images_key(neighbourhood, mean_removal_px, gradient_window, min_half_window, epipolar_gradient) -> tuple:
+    return (int(neighbourhood), int(mean_removal_px or 0), int(gradient_window or neighbourhood),
+            bool(min_half_window), bool(epipolar_gradient))
+
+
+def prepare_images(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
+                   mean_removal_px: int | None = None, gradient_window: int | None = None,
+                   min_half_window: bool = True, epipolar_gradient: bool = True) -> FrameImages:
+    """The images' share of ``prepare_frame`` (float images, grey, gradient energy); thread-safe."""
     for img, which in ((left, "left"), (right, "right")):
         try:
             calib.check_image(np.asarray(img), which)
@@ -233,7 +246,6 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
         R = _minus(np.ascontiguousarray(ra3), np.ascontiguousarray(br), bool(mean_removal_px),
                    np.empty(ra3.shape, np.float32))
         grey = _grey(np.ascontiguousarray(la3))
-        C = L.shape[2]
     else:
         L, R = _as_float_image(left, "left"), _as_float_image(right, "right")
         C = L.shape[2]
@@ -241,18 +253,42 @@ def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
         if mean_removal_px:
             L = L - cv2.blur(L, k, borderType=cv2.BORDER_REPLICATE).reshape(L.shape)
             R = R - cv2.blur(R, k, borderType=cv2.BORDER_REPLICATE).reshape(R.shape)
-    sigma = float(noise_sigma) if noise_sigma is not None else estimate_noise_sigma(grey)
-    sigma = max(sigma, 0.5)  # quantisation alone is ~0.3 grey levels; never trust a zero estimate
-    floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = None if epipolar_gradient else cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
     # Only the gradient along the epipolar lines (x) constrains disparity: a horizontal edge has strong
     # vertical gradient but matches at every disparity along it (aperture problem).
     sq = cv2.multiply(gx, gx) if epipolar_gradient else cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy))
     energy = gradient_energy(sq, int(gradient_window or neighbourhood), min_half_window)
+    return FrameImages(np.ascontiguousarray(L), np.ascontiguousarray(R), grey, energy,
+                       _images_key(neighbourhood, mean_removal_px, gradient_window, min_half_window,
+                                   epipolar_gradient), (left, right))
+
+
+def prepare_frame(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, neighbourhood: int,
+                  noise_sigma: float | None, ssd_floor_scale: float, gradient_saturation: float,
+                  window_sigma: float | None, mean_removal_px: int | None = None,
+                  gradient_window: int | None = None, min_half_window: bool = True,
+                  epipolar_gradient: bool = True, images: FrameImages | None = None) -> PreparedFrame:
+    """Convert a stereo pair once per frame: float images, noise floor and the gradient normaliser map.
+
+    ``mean_removal_px`` (odd) subtracts each image's local mean over that box before matching, which makes
+    the SSD insensitive to exposure/gain differences between the two cameras (a cheap zero-mean SSD).
+    ``images``: ``prepare_images`` of these very arrays with these settings, computed ahead; anything
+    else is computed here.
+    """
+    key = _images_key(neighbourhood, mean_removal_px, gradient_window, min_half_window, epipolar_gradient)
+    if (images is None or images.key != key or images.sources[0] is not left
+            or images.sources[1] is not right):
+        images = prepare_images(calib, left, right, neighbourhood, mean_removal_px, gradient_window,
+                                min_half_window, epipolar_gradient)
+    C = images.left.shape[2]
+    sigma = float(noise_sigma) if noise_sigma is not None else estimate_noise_sigma(images.grey)
+    sigma = max(sigma, 0.5)  # quantisation alone is ~0.3 grey levels; never trust a zero estimate
+    floor = max(ssd_floor_scale, 1e-6) * 2.0 * sigma ** 2
+    energy = images.energy
     sat2 = np.float32((gradient_saturation * sigma) ** 2)
     G = cv2.divide(energy, energy + sat2) if sat2 > 0 else np.ones_like(energy)
-    return PreparedFrame(np.ascontiguousarray(L), np.ascontiguousarray(R), np.ascontiguousarray(G), sigma,
+    return PreparedFrame(images.left, images.right, np.ascontiguousarray(G), sigma,
                          1.0 / floor, window_weights(neighbourhood, C, window_sigma))
 
 
@@ -378,8 +414,8 @@ def _fitness_kernel_py(L, R, G, pos, fx, fy, cxl, cxr, cy, baseline, half, C, su
 # The same loop compiled twice: across all cores, and on the calling thread only.  On a small machine
 # shared with other busy processes a parallel region can stall for a scheduler time slice (milliseconds)
 # waiting for a descheduled worker, so modest batches are better evaluated serially.
-_fitness_kernel_parallel = numba.njit(parallel=True, cache=True, fastmath=True)(_fitness_kernel_py)
-_fitness_kernel_serial = numba.njit(parallel=False, cache=True, fastmath=True)(cache_twin(_fitness_kernel_py, "serial"))
+_fitness_kernel_parallel = numba.njit(parallel=True, cache=True, nogil=True, fastmath=True)(_fitness_kernel_py)
+_fitness_kernel_serial = numba.njit(parallel=False, cache=True, nogil=True, fastmath=True)(cache_twin(_fitness_kernel_py, "serial"))
 
 
 def image_fitness(frame: PreparedFrame, calib: StereoCalibration, positions: np.ndarray,

@@ -33,7 +33,7 @@ _MIX2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S11, _S32 = (np.uint64(k) for k in (30, 27, 31, 11, 32))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def new_state(seed):
     """A generator state (one uint64 word) for the kernels below, from a non-negative int64 seed."""
     state = np.empty(1, np.uint64)
@@ -41,7 +41,7 @@ def new_state(seed):
     return state
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def next_u64(state):
     """The next 64 random bits (state advances by one step)."""
     state[0] += _GOLDEN
@@ -51,19 +51,19 @@ def next_u64(state):
     return z ^ (z >> _S31)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def uniform(state):
     """A float64 uniform on [0, 1)."""
     return float(next_u64(state) >> _S11) * (1.0 / 9007199254740992.0)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def below(state, n):
     """An int64 uniform on [0, n), 0 < n < 2³²."""
     return np.int64(((next_u64(state) >> _S32) * np.uint64(n)) >> _S32)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def normal_pair(state):
     """Two independent float64 standard normals (Marsaglia's polar method: one logarithm per pair)."""
     while True:
@@ -75,7 +75,7 @@ def normal_pair(state):
             return x * f, y * f
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def normal(state, spare):
     """A float64 standard normal and the new ``spare``: a kernel keeps ``spare`` (start with NaN) between
     calls so that each polar pair serves two draws."""
@@ -111,13 +111,13 @@ def backproject_uvd(calib: StereoCalibration, u, v, d) -> np.ndarray:
     return np.stack([x, y, z], axis=1).astype(np.float32, copy=False)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _uvd(x, y, z, cam):
     iz = 1.0 / z
     return cam[0] * x * iz + cam[2], cam[1] * y * iz + cam[3], cam[4] * iz - cam[5]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _to_point(u, v, d, cam, out, i):
     z = cam[4] / (d + cam[5])
     out[i, 0] = (u - cam[2]) * z / cam[0]
@@ -125,7 +125,7 @@ def _to_point(u, v, d, cam, out, i):
     out[i, 2] = z
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _mate_at(p, n, reach, r):
     """Neighbour ``r`` (in [0, 2·reach)) of ``p`` in the cell-ordered population: ±1…±reach places."""
     off = r - reach if r < reach else r - reach + 1
@@ -135,13 +135,13 @@ def _mate_at(p, n, reach, r):
     return min(max(m, 0), n - 1)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _local_mate(p, n, reach, rng):
     """A random neighbour of ``p`` in the cell-ordered population: ±1…±reach places."""
     return _mate_at(p, n, reach, below(rng, 2 * reach))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _mate_bits(reach, extra):
     """Bits per mate when ``extra`` uniform mates among 2·reach can share one ≤62-bit draw (2·reach a
     power of two), else 0."""
@@ -151,7 +151,7 @@ def _mate_bits(reach, extra):
     return b if (1 << b) == 2 * reach and b * extra <= 62 else 0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fittest_local_mate(p, m1, n, reach, best_of, bits, fit, rng):
     """The fittest of ``m1`` and ``best_of`` − 1 more random neighbours of ``p``.  With ``bits`` > 0
     (see _mate_bits) the extra neighbours come from the bit fields of one draw: the same distribution as
@@ -174,7 +174,7 @@ def _fittest_local_mate(p, m1, n, reach, best_of, bits, fit, rng):
     return m1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def plan_batch(cum_rates, shared, tournament_size, pool, own_for_local, seed, ops, parents):
     """Operators and parents of one batch, written into ``ops`` and ``parents`` sorted by parent.
 
@@ -215,7 +215,7 @@ def plan_batch(cum_rates, shared, tournament_size, pool, own_for_local, seed, op
         parents[k] = raw_parents[i]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def make_offspring(ops, parents, mates1, mates2, pos, fit, parent_sigma, immigrants, cam, sigma_px, d_lo,
                    d_hi, exchange_sigma, immigrant_sigma, mate_reach, exchange_best_of, seed, out_child,
                    out_sigma):
@@ -341,13 +341,13 @@ def crossover3(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray, rng: np.random.Ge
                 rng)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _shared(f, count, expected, strength):
     factor = 1.0 + strength * max(0.0, count / expected - 1.0)
     return f / factor if f > 0 else f * factor
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child_fit, pos, fit, sigma_d,
                      cells, counts, expected, strength, cell_px, cols, rows, cam, crowding, adaptive, step_up,
                      step_down, sigma_min, sigma_max):
@@ -418,7 +418,7 @@ def insert_offspring(ops, parents, n_candidates, seed, child, child_sigma, child
     return inserted
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def cell_order(cells, n_cells):
     """Order of flies by sharing cell, flies outside the image (cell −1) last, ties in index order: a
     counting sort, O(N + cells)."""
@@ -435,7 +435,7 @@ def cell_order(cells, n_cells):
     return order
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def permuted(order, pos, fit, sigma, cells):
     """(pos, fit, sigma, cells) rearranged by ``order`` in one pass (numpy's four fancy-index copies
     cost several times more, once per generation)."""

@@ -17,18 +17,18 @@ from numba import njit, prange
 
 
 # ---------------------------------------------------------------------------------------- kernels
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def k_exact(r, eps):
     return 1.0 / (eps + r)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def dk_exact(r, eps):
     d = eps + r
     return -1.0 / (d * d)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def k_far(r, eps, rc):
     if r >= rc:
         return 1.0 / (eps + r)
@@ -36,7 +36,7 @@ def k_far(r, eps, rc):
     return 1.0 / d - (r * r - rc * rc) / (2.0 * rc * d * d)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def dk_far(r, eps, rc):
     if r >= rc:
         d = eps + r
@@ -45,7 +45,7 @@ def dk_far(r, eps, rc):
     return -r / (rc * d * d)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def far_kernel_grid(shape0, shape1, shape2, h, eps, rc):
     """K_far sampled on the circular offset layout of an FFT of the given shape."""
     out = np.empty((shape0, shape1, shape2))
@@ -61,7 +61,7 @@ def far_kernel_grid(shape0, shape1, shape2, h, eps, rc):
 
 
 # ------------------------------------------------------------------------------------- exact sums
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def exact_field(Q, B, wb, eps):
     """S_B and ∇S_B at every row of Q, summed over all of B (float64, parallel over Q)."""
     n = Q.shape[0]
@@ -92,7 +92,7 @@ def exact_field(Q, B, wb, eps):
     return S, G
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def exact_field_value(Q, B, wb, eps):
     """S_B at every row of Q (value only, parallel over Q)."""
     n = Q.shape[0]
@@ -110,7 +110,7 @@ def exact_field_value(Q, B, wb, eps):
 
 
 # ----------------------------------------------------------------------------------- grid building
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def cic_deposit(P, w, lo, h, shape):
     """Cloud-in-cell (trilinear) deposit of weights w at points P onto a grid starting at lo."""
     rho = np.zeros((shape[0], shape[1], shape[2]))
@@ -134,7 +134,7 @@ def cic_deposit(P, w, lo, h, shape):
     return rho
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def tsc_deposit(P, w, lo, h, shape):
     """Triangular-shaped-cloud (quadratic B-spline, 27-node) deposit of weights w at points P onto a
     grid starting at lo.
@@ -165,7 +165,7 @@ def tsc_deposit(P, w, lo, h, shape):
     return rho
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def build_cells(B, wb, lo, cell, dims):
     """3-D cell list of B (cell sizes `cell` (3,) per axis): flies sorted by cell (x-major, then y,
     then z), as float32 SoA.
@@ -203,7 +203,7 @@ def build_cells(B, wb, lo, cell, dims):
 
 
 # ------------------------------------------------------------------------------------- evaluation
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _cr_weights(t):
     """Catmull-Rom weights of nodes -1, 0, 1, 2 at fraction t, and their derivatives."""
     t2 = t * t
@@ -219,7 +219,7 @@ def _cr_weights(t):
     return (w0, w1, w2, w3), (d0, d1, d2, d3)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _interp(grid, lo, h, qx, qy, qz, want_grad):
     """Tricubic (Catmull-Rom) value of `grid` at q and its analytic gradient; inside flag.
 
@@ -266,7 +266,7 @@ def _interp(grid, lo, h, qx, qy, qz, want_grad):
     return True, s, gx / h, gy / h, gz / h
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
 def _cr4(t):
     """Catmull-Rom weights of nodes -1, 0, 1, 2 at fraction t."""
     t2 = t * t
@@ -275,7 +275,7 @@ def _cr4(t):
             0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2))
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
 def _interp_value(grid, lo, h, qx, qy, qz):
     """Tricubic (Catmull-Rom) value of `grid` at q, as `_interp` without the gradient: (inside, value).
 
@@ -311,7 +311,7 @@ def _interp_value(grid, lo, h, qx, qy, qz):
     return True, s
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def near_accumulate(Q, use, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad, S, G):
     """Add Σ_j w_j (K − K_far)(|q − b_j|) over B's flies within r_c of q (and its gradient) to S (and G),
     for every row q of Q with use[q].
@@ -410,7 +410,7 @@ def near_accumulate(Q, use, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad,
             G[i, 2] += dz
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _exact_at(qx, qy, qz, B, wb, eps, want_grad):
     """S_B(q) and ∇S_B(q) summed over all of B (the fallback for points outside the grid)."""
     s = 0.0
@@ -432,7 +432,7 @@ def _exact_at(qx, qy, qz, B, wb, eps, want_grad):
     return s, dx, dy, dz
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _far_values(Q, grid, lo, h, B, wb, eps, S, inside):
     """Far (grid) part of S_B at the rows of Q into S; rows outside the grid get the exact sum and
     inside[i] = False.  Returns how many rows fell outside."""
@@ -450,7 +450,7 @@ def _far_values(Q, grid, lo, h, B, wb, eps, S, inside):
     return outside
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _far_field(Q, grid, lo, h, B, wb, eps, want_grad, S, G, inside):
     """As `_far_values`, with the gradient into G when `want_grad`."""
     outside = 0
@@ -470,7 +470,7 @@ def _far_field(Q, grid, lo, h, B, wb, eps, want_grad, S, G, inside):
     return outside
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def fast_values(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, near):
     """S_B at every row of Q (serial, value only); also how many rows fell outside the grid.
 
@@ -486,7 +486,7 @@ def fast_values(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims,
     return S, outside
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def fast_field_serial(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, near, want_grad):
     """S_B and ∇S_B at every row of Q (serial: predictable on a busy machine); also how many rows fell outside the grid."""
     n = Q.shape[0]
@@ -499,7 +499,7 @@ def fast_field_serial(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell,
     return S, G, outside
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def fast_field(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, near, want_grad):
     """As `fast_field_serial`, in parallel over chunks of 2,048 rows of Q (for large batches)."""
     n = Q.shape[0]
@@ -520,7 +520,7 @@ def fast_field(Q, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims, 
     return S, G, outs.sum()
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _moved(A, R, t, Q):
     """Rows of Q = Rᵀ(aᵢ − t): A's points pulled back through the candidate f = (R, t)."""
     for i in range(A.shape[0]):
@@ -532,7 +532,7 @@ def _moved(A, R, t, Q):
         Q[i, 2] = R[0, 2] * ex + R[1, 2] * ey + R[2, 2] * ez
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo, cell, dims,
                 near):
     """Σᵢ wa_i / S_B(Rᵀ(a_i − t)) for every candidate (R, t): the un-normalised δ(A, f(B)).
@@ -558,7 +558,7 @@ def batch_delta(A, wa, Rs, ts, grid, lo, h, B, wb, eps, rc, Bs, wbs, start, clo,
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def near_field(Q, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     """The near sum of `near_accumulate` at every row of Q (serial), with gradients (n, 3)."""
     n = Q.shape[0]
@@ -569,7 +569,7 @@ def near_field(Q, Bs, wbs, start, clo, cell, dims, eps, rc, want_grad):
     return S, G
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def batch_near(A, wa, Rs, ts, Bs, wbs, start, clo, cell, dims, eps, rc):
     """Σᵢ wa_i · near-sum(Rᵀ(a_i − t)) for every candidate (R, t) (serial, see batch_delta)."""
     m = Rs.shape[0]
@@ -589,7 +589,7 @@ def batch_near(A, wa, Rs, ts, Bs, wbs, start, clo, cell, dims, eps, rc):
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def param_gradients(D, dR, dtR, Gq):
     """Per-fly gradients with respect to the pose params: J[i, k] = Gqᵢ · (dᵢ @ dR_k − dtR_k).
 

@@ -100,7 +100,7 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return s.ravel()[:n].reshape(shape)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _reference_terms(P, fx, fy, ref, gx, gy, J, A):
     """Per-level terms of the inverse-compositional step, from the reference image only: which flies'
     neighbourhoods are in the reference (returned), the zero-mean Jacobians J (N, 9, 6) of their
@@ -148,7 +148,7 @@ def _reference_terms(P, fx, fy, ref, gx, gy, J, A):
     return valid_ref
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _unit_patch_residuals(P, T, img, fx, fy, cx, cy, z_min, ref0, valid_ref, r, valid):
     """Zero-mean residuals r (N, 9) of the flies P moved by T in img over the 3×3 unit PATTERN
     (bilinear; the nine samples share one 4×4 block of pixels and one pair of fractions), and which
@@ -190,7 +190,7 @@ def _unit_patch_residuals(P, T, img, fx, fy, cx, cy, z_min, ref0, valid_ref, r, 
     return used
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _robust_normal_equations(J, A, r, valid, weights, huber_k, H, g):
     """Gauss-Newton H = Σ w h JᵀJ and g = Σ w h Jᵀr with Huber weights h (into H, g), and the inlier
     share. A fly's precomputed A = Σₒ JᵀJ is taken as is and only its outliers' (1 − h) JᵀJ removed."""
@@ -225,7 +225,7 @@ def _robust_normal_equations(J, A, r, valid, weights, huber_k, H, g):
     return inliers / max(count, 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve6(M, b, x):
     """x = M⁻¹ b for a 6×6 M (Gaussian elimination with partial pivoting; M and b are overwritten);
     False when a pivot is exactly zero, as LAPACK's gesv reports a singular matrix."""
@@ -254,7 +254,7 @@ def _solve6(M, b, x):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _compose_inverse_increment(T, xi):
     """T ← T · se3_exp(xi)⁻¹ in place (Rodrigues rotation, first-order translation, as se3_exp)."""
     wx, wy, wz = xi[3], xi[4], xi[5]
@@ -281,7 +281,7 @@ def _compose_inverse_increment(T, xi):
     T[:3, :] = out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _median(values, n, counts, picked):
     """np.median(values[:n]) to the bit, without sorting or selecting over all n: a histogram of
     ``counts.size`` bins over [0, max] finds the bins holding the middle elements, and only those are
@@ -322,7 +322,7 @@ def _median(values, n, counts, picked):
     return middle[k + 1 - below]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gauss_newton(P, weights, valid_ref, ref0, J, A, T, img, fx, fy, cx, cy, z_min, iterations, min_flies,
                   huber_px, r, valid, H, z_typical, stop_px):
     """Up to ``iterations`` robust Gauss-Newton steps of one pyramid level, T updated in place and H
@@ -574,7 +574,7 @@ def coarse_candidates(points_ref: np.ndarray, weights: np.ndarray, ref_pyramid: 
 _SCORE_CAP = 20.0   # a fly's lattice residual is truncated here (grey levels), and is this when not seen
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _lattice_scores(img, ref, w, Q, X, Z, c, sn, fx, fy, cx, cy):
     """Σ weight × truncated mean |zero-mean 3×3 neighbourhood − ref| over the flies Q (N, 3), for each
     candidate m: rot_y(yaw_m)·q + (X_m, 0, Z_m) (c, sn its yaw's cos, sin), projected with fx, fy, cx,
