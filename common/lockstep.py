@@ -50,7 +50,7 @@ def _decoded(messages: Iterator[RecordedMessage], evolver_config: EvolverConfig,
     them): OpenCV and the numba kernels release the GIL, so the next frames get ready on the core the
     evolver's serial loops leave idle.  The evolver uses the images only for the arrays they were
     computed from (common.fly.fitness.prepare_frame), so the result is the same, to the bit."""
-    def decode(rec: RecordedMessage, calib: StereoCalibration | None):
+    def decode_and_prepare(rec: RecordedMessage, calib: StereoCalibration | None):
         try:
             msg = m.decode(rec.payload)
         except m.DecodeError:
@@ -72,14 +72,14 @@ def _decoded(messages: Iterator[RecordedMessage], evolver_config: EvolverConfig,
     pending: deque = deque()
     frames_queued = 0
     calib = None
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-decode")
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lockstep-prepare")
     try:
         for rec in messages:
             stream = rec.key.split("/", 1)[-1]
             if stream not in _STREAMS:
                 continue
             is_frame = stream == "stereo/frame"
-            item = pool.submit(decode, rec, calib) if is_frame else decode(rec, None)
+            item = pool.submit(decode_and_prepare, rec, calib) if is_frame else decode_and_prepare(rec, None)
             if stream == "stereo/calibration" and isinstance(item[0], m.StereoCalibrationMsg):
                 try:
                     calib = m.calibration_from_msg(item[0])

@@ -4,7 +4,7 @@ import pytest
 from scipy import stats
 
 from common.camera import StereoCalibration
-from common.fly.fitness import OUTSIDE_FITNESS, ImageError, image_fitness, prepare_frame
+from common.fly.fitness import OUTSIDE_FITNESS, ImageError, image_fitness, prepare_frame, prepare_images
 from common.fly.operators import (CROSSOVER2, CROSSOVER3, EXCHANGE, IMMIGRANT, MUTATION, SharingGrid,
                                   backproject_uvd, camera_vector, cell_order, crossover2, crossover3, exchange_depth,
                                   make_offspring, mutate, plan_batch, project_uvd)
@@ -178,6 +178,26 @@ def _frame(calib, left, right, **kw):
                 window_sigma=None)
     args.update(kw)
     return prepare_frame(calib, left, right, **args)
+
+
+def test_images_prepared_ahead_are_used_only_for_their_arrays_and_settings():
+    """prepare_frame takes precomputed images (common.lockstep prepares them in a worker thread) only
+    when they come from these very arrays with these settings; anything else is prepared afresh."""
+    calib, left, right, _ = textured_plane_pair(disparity=12)
+    settings = dict(neighbourhood=7, mean_removal_px=5, gradient_window=None, min_half_window=True,
+                    epipolar_gradient=True)
+    fresh = _frame(calib, left, right, **settings)
+    ahead = prepare_images(calib, left, right, **settings)
+    used = _frame(calib, left, right, images=ahead, **settings)
+    assert used.left is ahead.left                       # taken as computed, not recomputed
+    for other in (dict(settings, mean_removal_px=None), dict(settings, gradient_window=9),
+                  dict(settings, epipolar_gradient=False), dict(settings, min_half_window=False)):
+        stale = prepare_images(calib, left, right, **other)
+        got = _frame(calib, left, right, images=stale, **settings)
+        assert got.left is not stale.left
+        assert np.array_equal(got.left, fresh.left) and np.array_equal(got.gradient_norm, fresh.gradient_norm)
+    same_pixels = prepare_images(calib, left.copy(), right.copy(), **settings)    # equal, but other arrays
+    assert _frame(calib, left, right, images=same_pixels, **settings).left is not same_pixels.left
 
 
 def test_fitness_peaks_at_the_true_disparity():

@@ -63,12 +63,14 @@ def test_frames_prepared_ahead_give_the_same_populations_to_the_bit(monkeypatch)
     from common.fly.core import EvolverCore
     from common.lockstep import _decoded
 
-    got = list(_decoded(_first(40), SMALL))
-    frames = [(msg, images) for stream, msg, images in got if stream == "stereo/frame"]
-    first_calibration = next(i for i, (s, _, _) in enumerate(got) if s == "stereo/calibration")
-    assert all(images is None for s, _, images in got[:first_calibration] if s == "stereo/frame")
-    assert len(frames) >= 4 and all(images is not None for _, images in frames[-3:])
-    calibration = got[first_calibration][1]
+    recs = list(_first(40))
+    first_frame = next(r for r in recs if r.key.endswith("stereo/frame"))
+    assert recs[0].key.endswith("stereo/calibration")
+    got = list(_decoded(iter([first_frame] + recs), SMALL))      # a frame before any calibration
+    assert got[0][0] == "stereo/frame" and got[0][2] is None
+    frames = [(msg, images) for stream, msg, images in got[1:] if stream == "stereo/frame"]
+    assert len(frames) >= 4 and all(images is not None for _, images in frames)
+    calibration = got[1][1]
     runs, prepared_here = [], []
     counting = fitness.prepare_images
     monkeypatch.setattr(fitness, "prepare_images", lambda *a, **k: prepared_here.append(1) or counting(*a, **k))
@@ -86,3 +88,22 @@ def test_frames_prepared_ahead_give_the_same_populations_to_the_bit(monkeypatch)
     core.on_calibration(calibration)
     wrong = [core.on_frame(msg, images=frames[-1][1]).population for msg, _ in frames[-3:]]
     assert all((w.fitness == h.fitness).all() for w, h in zip(wrong, runs[1]))
+
+
+def test_eval_prepares_every_frame_off_the_main_thread(monkeypatch):
+    """run_lockstep hands the worker's images to the evolver: the main thread prepares none itself."""
+    import threading
+
+    from common.fly import evolver, fitness
+
+    threads = []
+
+    def recording(original):
+        return lambda *a, **k: threads.append(threading.current_thread() is threading.main_thread()) or original(*a, **k)
+
+    monkeypatch.setattr(fitness, "prepare_images", recording(fitness.prepare_images))     # prepare_frame's own
+    monkeypatch.setattr(evolver, "prepare_images", recording(evolver.prepare_images))     # images_ahead's
+    res = run_lockstep(RecordingReader(CORRIDOR).messages(), generations_per_frame=2, evolver_config=SMALL,
+                       max_frames=4)
+    assert res.frames == 4
+    assert len(threads) >= 4 and not any(threads)

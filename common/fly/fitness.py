@@ -14,7 +14,8 @@ This is ``G / (SSD + floor)`` of the Fly-algorithm literature scaled by the cons
 in [0, 1) and plug-in terms from other sensors can be weighted against it.  Flies whose window leaves
 either image (or that are behind the camera) get ``OUTSIDE_FITNESS`` (−inf), lower than any other.
 
-The kernel is a numba ``prange`` loop over flies; ``prepare_frame`` does the per-frame work once.
+The kernel is a numba ``prange`` loop over flies; ``prepare_frame`` does the per-frame work once
+(``prepare_images``, its share that depends on the images alone, can be done ahead in another thread).
 """
 from __future__ import annotations
 
@@ -204,8 +205,8 @@ def _grey(img):
 class FrameImages:
     """The part of a :class:`PreparedFrame` that depends on the images and the settings in ``key`` alone,
     not on the noise estimate (the evolver's state), so it can be computed ahead in another thread
-    (common.lockstep does, while the evolver works on the frame before).  ``sources`` are the uint8
-    images it was computed from: ``prepare_frame`` uses it only for those very arrays."""
+    (common.lockstep does, while the evolver works on the frame before).  ``sources`` are the images
+    it was computed from: ``prepare_frame`` uses it only for those very arrays."""
     left: np.ndarray        # H×W×C float32, local mean removed when asked
     right: np.ndarray
     grey: np.ndarray        # H×W float32 left image (channel mean)
