@@ -58,6 +58,7 @@ sys.path.insert(0, str(ROOT))
 
 from common import messages as m  # noqa: E402
 from common.bus import BusOptions, Node  # noqa: E402
+from common.fly.core import EvolverServiceConfig  # noqa: E402
 from common.trajectory_metrics import TrajectoryMismatch, evaluate  # noqa: E402
 from common.sim.offline import cached_recording  # noqa: E402
 
@@ -257,11 +258,12 @@ def main(argv=None) -> int:
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--settle-ms", type=float, default=25.0,
                    help="evolver's longest evolution per new frame before publishing")
-    p.add_argument("--recovery", type=float, default=0.95,
+    evolver = EvolverServiceConfig()
+    p.add_argument("--recovery", type=float, default=evolver.recovery,
                    help="evolver publishes once the population's mean fitness is back to this fraction of the "
-                        "previous frame's (2 = never: always the whole --settle-ms, the old behaviour)")
-    p.add_argument("--duty", type=float, default=0.7, help="evolver's duty cycle between frames")
-    p.add_argument("--cpu-budget", type=float, default=0.35,
+                        "recent frames' best (2 = never: always the whole --settle-ms, the old behaviour)")
+    p.add_argument("--duty", type=float, default=evolver.duty, help="evolver's duty cycle between frames")
+    p.add_argument("--cpu-budget", type=float, default=evolver.cpu_budget,
                    help="evolver evolves between frames only while under this fraction of a core")
     p.add_argument("--image-hz", type=float, default=5.0, help="bridge's image/flies logging rate")
     p.add_argument("--no-nice", action="store_true", help="run every service at normal priority")

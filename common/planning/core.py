@@ -38,7 +38,7 @@ class PlannerServiceConfig:
     rate: float = field(default=10.0, metadata={"help": "command rate (Hz)"})
     field_hz: float = field(default=1.0, metadata={"help": "field publication rate (Hz)"})
     solve_ms: float = field(default=40.0, metadata={"help": "relaxation budget per cycle (ms)"})
-    solve_hz: float = field(default=5.0, metadata={
+    solve_hz: float = field(default=2.0, metadata={
         "help": "most updates of a converged field per second (Hz); between them commands descend the last one"})
     sonar_range: float = field(default=0.8, metadata={
         "help": "sonar echoes nearer than this (m from base_link) are obstacles; farther ones are unused"})
