@@ -28,7 +28,11 @@ Prints, and with --json as one JSON object on the last line:
   while frames flow — from the first frame seen here to the last — in % of one core and in CPU-ms per
   frame published, plus "total": the budget figure, which depends on the machine far less than latency;
 - ate_rmse_m: the localiser's poses against the replayed ground truth (a latency cut must not cost
-  accuracy).
+  accuracy);
+- reference_cpu_ms: the CPU time of a fixed piece of the evolver's work (:func:`machine_reference_ms`),
+  measured before and after the run, and cpu_per_frame_in_references: the total CPU-ms per frame over
+  their mean. A virtual machine's speed changes from day to day (the same code gave 34 and 58 CPU-ms
+  per frame), so runs on different days compare by this ratio, not by CPU-ms.
 
 ``--hog`` runs the bench a second time with one busy process (``python -c 'while True: pass'``) beside
 it and reports that run's figures under the key "hog" (its files in OUT/hog/).
@@ -280,7 +284,13 @@ def main(argv=None) -> int:
     recording = cached_recording("corridor", seed=0, seconds=args.seconds, fps=args.fps, width=640, height=480,
                                  encoding="jpeg", quality=90)
     print(f"[pipeline] recording {recording} ready in {time.monotonic() - t0:.0f} s", file=sys.stderr, flush=True)
+    reference = [machine_reference_ms()]
+    print(f"[pipeline] machine reference: {reference[0]} CPU-ms (20 generations of 5,000 flies, one thread)",
+          file=sys.stderr, flush=True)
     result = run_once(args, out, recording)
+    reference.append(machine_reference_ms())
+    result["reference_cpu_ms"] = {"before": reference[0], "after": reference[1]}
+    result["cpu_per_frame_in_references"] = in_references(result, reference)
     if args.hog:
         print("[pipeline] again, beside one busy process (--hog) ...", file=sys.stderr, flush=True)
         hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -289,6 +299,7 @@ def main(argv=None) -> int:
         finally:
             hog.kill()
             hog.wait()
+        result["hog"]["cpu_per_frame_in_references"] = in_references(result["hog"], reference)
     for label, r in [("", result)] + ([("hog: ", result["hog"])] if "hog" in result else []):
         print(f"{label}frames published {r['frames_published']}, evolved {r['frames_evolved']} "
               f"({100 * (r['frames_skipped_fraction'] or 0):.0f} % skipped), poses {r['poses']} "
@@ -301,10 +312,33 @@ def main(argv=None) -> int:
               f"{r['peak_rss_mb']} MB, growth {r['rss_growth_mb']} MB (second half vs first)")
         total = (r["cpu_ms_per_frame"] or {}).get("total")
         print(f"{label}CPU while frames flow: {(r['cpu_pct_of_one_core'] or {}).get('total')} % of one core, "
-              f"{total} CPU-ms per frame in all")
+              f"{total} CPU-ms per frame in all, {r['cpu_per_frame_in_references']} machine references "
+              f"({reference[0]} -> {reference[1]} CPU-ms)")
     if args.json:
         print(json.dumps(result))
     return 0
+
+
+def in_references(r: dict, reference: list[float]) -> float | None:
+    """A run's total CPU-ms per frame over the mean machine reference."""
+    total = (r.get("cpu_ms_per_frame") or {}).get("total")
+    return round(total / float(np.mean(reference)), 3) if total else None
+
+
+def machine_reference_ms(repeats: int = 5) -> float:
+    """CPU-ms (this thread's) of a fixed piece of the evolver's work, the least of ``repeats``: 20
+    generations of 5,000 flies on a synthetic 640×480 colour pair, one thread, seed 0."""
+    from common.fly import EvolverConfig, FlyEvolver
+    from common.fly.synthetic import textured_plane_pair
+    calib, left, right, _ = textured_plane_pair(width=640, height=480)
+    times = []
+    for _ in range(repeats + 1):
+        evolver = FlyEvolver(calib, EvolverConfig(parallel=False), seed=0)
+        t0 = time.thread_time()
+        evolver.set_images(left, right)
+        evolver.step(20)
+        times.append((time.thread_time() - t0) * 1e3)
+    return round(min(times[1:]), 1)         # the first run loads the kernels
 
 
 def run_once(args, out: Path, recording: Path) -> dict:
