@@ -158,15 +158,12 @@ def loop_eval(recording: Path, out: Path, closure: bool, extra: list[str]) -> di
     return rec
 
 
-def loop_recording(path: Path, seed: int) -> Path:
-    """The loop scenario simulated to `path` (kept: it is deterministic for the seed)."""
-    if not path.exists():
-        log(f"simulating recordings/scenarios/loop.toml (seed {seed}) to {path}")
-        proc = subprocess.run([str(FLYSLAM), "simulate", "--scenario", "loop", "--seed", str(seed), "--out", str(path)],
-                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"flyslam simulate failed: {proc.stderr.strip().splitlines()[-1:]}")
-    return path
+def loop_recording(seed: int) -> Path:
+    """The loop scenario simulated for ``seed`` (common.sim.offline.cached_recording: made again whenever
+    the scenario or the simulator's code changed, never a stale file's figures)."""
+    from common.sim.offline import cached_recording
+    log(f"simulating (or reusing) recordings/scenarios/loop.toml, seed {seed}")
+    return cached_recording("loop", seed=seed)
 
 
 def kidnapped(trials: int, seed: int) -> dict:
@@ -319,7 +316,7 @@ def main(argv=None) -> int:
         out["loop_error"] = "skipped (--skip-loop)"
     else:
         try:
-            rec = loop_recording(args.out / f"loop_seed{args.seed}.mcap", args.seed)
+            rec = loop_recording(args.seed)
             for closure in (True, False):
                 log(f"flyslam eval on the loop, loop closure {'on' if closure else 'off'} (load {load()[0]:.1f})")
                 r = loop_eval(rec, out_dir, closure, ["--seed", str(args.seed)])

@@ -69,11 +69,27 @@ def simulate_to_recording(scenario: str, out: str | Path, seed: int = 0, seconds
     return {**options, "out": str(out), "frames": frames, "seconds": sim.time_ns * 1e-9}
 
 
+# What a simulated recording is made by: a change to any of these makes cached recordings stale.
+SIMULATOR_SOURCES = (*sorted((ROOT / "common" / "sim").glob("*.py")),
+                     *(ROOT / "common" / f for f in ("images.py", "codec.py", "messages.py", "recording.py")))
+
+
+def simulator_digest() -> str:
+    """Digest of the simulator's source files (``SIMULATOR_SOURCES``)."""
+    h = hashlib.sha1()
+    for f in SIMULATOR_SOURCES:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def cached_recording(scenario: str = "corridor", seed: int = 0, progress=None, **options) -> Path:
-    """Path of a deterministic simulated recording, generated on first use into .cache/recordings/."""
+    """Path of a deterministic simulated recording, generated on first use into .cache/recordings/.
+    The name carries a digest of the scenario, seed, options and the simulator's code, so a recording
+    made by an older simulator is never taken for a new one's."""
     scn_file = Path(scenario) if str(scenario).endswith(".toml") else scenario_path(scenario)
-    digest = hashlib.sha1(json.dumps([scn_file.read_text(), seed, sorted(options.items())], default=str)
-                          .encode()).hexdigest()[:10]
+    digest = hashlib.sha1(json.dumps([scn_file.read_text(), seed, sorted(options.items()), simulator_digest()],
+                                     default=str).encode()).hexdigest()[:10]
     out = CACHE_DIR / f"{scn_file.stem}-seed{seed}-{digest}.mcap"
     if not out.exists():
         CACHE_DIR.mkdir(parents=True, exist_ok=True)
