@@ -59,6 +59,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+# The services get the environment a launch would give them, not what importing common.fly below sets
+# in this process (OMP_WAIT_POLICY).
+SERVICE_ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 
 from common import messages as m  # noqa: E402
 from common.bus import BusOptions, Node  # noqa: E402
@@ -401,7 +404,7 @@ def run_once(args, out: Path, recording: Path) -> dict:
 
     sup = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", str(launch), "--out", str(out / "run"),
                             "--hub", hub], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                           env=SERVICE_ENV)
     time.sleep(1.0)
     rss_samples: list[tuple[float, float]] = []
     rss_by_service: dict[str, list[float]] = {}

@@ -54,8 +54,9 @@ QUALITY_REFERENCE_FRAMES = 10
 class EvolverServiceConfig:
     """The live evolver's scheduling (the algorithm's own settings are :class:`EvolverConfig`)."""
     settle_ms: float = field(default=40.0, metadata={"help": "longest evolution on a new frame before publishing (ms)"})
-    min_generations: int = field(default=1, metadata={"help": "generations on a new frame before it may be published"})
-    recovery: float = field(default=0.9, metadata={
+    min_generations: int = field(default=SettlePolicy.min_generations, metadata={
+        "help": "generations on a new frame before it may be published"})
+    recovery: float = field(default=SettlePolicy.recovery, metadata={
         "help": "publish once mean fitness is back to this fraction of the best of the last frames'"})
     publish_hz: float = field(default=10.0, metadata={"help": "republish rate between frames (Hz)"})
     duty: float = field(default=0.7, metadata={"help": "fraction of wall time spent evolving between frames"})

@@ -32,7 +32,7 @@ class SettlePolicy:
     (``recovery`` > 1 is never reached in practice: the whole budget, as a fixed settle time)."""
     budget_s: float
     min_generations: int = 1
-    recovery: float = 0.95
+    recovery: float = 0.9
 
     def __post_init__(self):
         if not self.budget_s >= 0 or self.min_generations < 0 or not 0 <= self.recovery <= 2:

@@ -69,14 +69,21 @@ def simulate_to_recording(scenario: str, out: str | Path, seed: int = 0, seconds
     return {**options, "out": str(out), "frames": frames, "seconds": sim.time_ns * 1e-9}
 
 
-# What a simulated recording is made by: a change to any of these makes cached recordings stale.
+# What a simulated recording is made by: a change to any of these makes cached recordings stale.  Every
+# module of common the simulator imports (tests/test_sim_cache.py checks), less common/__init__.py,
+# numba_cache.py (where compiled kernels go) and trajectory.py (the TUM file beside a recording).
 SIMULATOR_SOURCES = (*sorted((ROOT / "common" / "sim").glob("*.py")),
-                     *(ROOT / "common" / f for f in ("images.py", "codec.py", "messages.py", "recording.py")))
+                     *(ROOT / "common" / f for f in ("camera.py", "codec.py", "geometry.py", "images.py",
+                                                     "messages.py", "recording.py")))
 
 
 def simulator_digest() -> str:
-    """Digest of the simulator's source files (``SIMULATOR_SOURCES``)."""
-    h = hashlib.sha1()
+    """Digest of the simulator's source files (``SIMULATOR_SOURCES``) and of the libraries that draw,
+    blur and encode its images."""
+    import cv2
+    import numba
+    import numpy
+    h = hashlib.sha1(f"{cv2.__version__} {numpy.__version__} {numba.__version__}".encode())
     for f in SIMULATOR_SOURCES:
         h.update(f.name.encode())
         h.update(f.read_bytes())
@@ -85,13 +92,19 @@ def simulator_digest() -> str:
 
 def cached_recording(scenario: str = "corridor", seed: int = 0, progress=None, **options) -> Path:
     """Path of a deterministic simulated recording, generated on first use into .cache/recordings/.
-    The name carries a digest of the scenario, seed, options and the simulator's code, so a recording
-    made by an older simulator is never taken for a new one's."""
+
+    The name carries a digest of the scenario, seed and options, then one of the simulator's code
+    (``simulator_digest``): a recording made by an older simulator is never taken for a new one's, and
+    making the new one deletes the older ones of the same scenario, seed and options."""
     scn_file = Path(scenario) if str(scenario).endswith(".toml") else scenario_path(scenario)
-    digest = hashlib.sha1(json.dumps([scn_file.read_text(), seed, sorted(options.items()), simulator_digest()],
-                                     default=str).encode()).hexdigest()[:10]
-    out = CACHE_DIR / f"{scn_file.stem}-seed{seed}-{digest}.mcap"
+    what = hashlib.sha1(json.dumps([scn_file.read_text(), seed, sorted(options.items())], default=str)
+                        .encode()).hexdigest()[:10]
+    stem = f"{scn_file.stem}-seed{seed}-{what}"
+    out = CACHE_DIR / f"{stem}-{simulator_digest()[:10]}.mcap"
     if not out.exists():
         CACHE_DIR.mkdir(parents=True, exist_ok=True)
         simulate_to_recording(str(scn_file), out, seed=seed, progress=progress, **options)
+        for stale in [*CACHE_DIR.glob(f"{stem}-*.mcap"), CACHE_DIR / f"{stem}.mcap"]:   # older simulators'
+            if stale != out:
+                stale.unlink(missing_ok=True)
     return out
