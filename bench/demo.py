@@ -10,6 +10,8 @@
 2. Loop: ``flyslam eval`` (deploy/commands/evaluate.py) on a recording simulated from
    recordings/scenarios/loop.toml, with ``--localiser loop_closure=True`` and ``=False``: ATE in % of the
    path and the final position error (estimate against truth at the last frame, anchored at the start).
+   The ``loop_*`` keys are ``--seed``'s loop; ``loop_by_seed`` repeats it for ``--loop-seeds`` seeds, since
+   one simulated loop says little about whether closure helps.
 3. Kidnapped robot: bench/kidnapped.py's ``run_kidnapped(trials, seed)`` when that module exists; else
    the keys are null and ``kidnapped_note`` says why.
 4. Registration covariance: the NEES of the registrations of bench/paper.py (the runs' localiser calls
@@ -166,6 +168,20 @@ def loop_recording(seed: int) -> Path:
     return cached_recording("loop", seed=seed)
 
 
+def loop_pair(seed: int, out_dir: Path) -> tuple[dict, dict]:
+    """The loop of ``seed`` evaluated with loop closure on and off: (on, off) figures of loop_eval."""
+    rec = loop_recording(seed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figures = []
+    for closure in (True, False):
+        log(f"flyslam eval on the loop (seed {seed}), loop closure {'on' if closure else 'off'} (load {load()[0]:.1f})")
+        r = loop_eval(rec, out_dir, closure, ["--seed", str(seed)])
+        log(f"  ATE {r.get('ate_m')} m ({r.get('ate_pct_of_path')} % of the path), "
+            f"final error {r.get('final_error_m')} m, {r['seconds']} s")
+        figures.append(r)
+    return figures[0], figures[1]
+
+
 def kidnapped(trials: int, seed: int) -> dict:
     if trials == 0:
         return dict(kidnapped_relocalised=None, kidnapped_trials=None,
@@ -254,6 +270,10 @@ def print_table(out: dict) -> None:
                   f"final error {None if r.get('final_error_m') is None else round(r['final_error_m'], 3)} m "
                   f"({r.get('seconds')} s, load {r.get('load_start')}→{r.get('load_end')})"
                   + (f"  {r['error']}" if r.get("error") else ""))
+    for r in out.get("loop_by_seed") or []:
+        print(f"loop seed {r['seed']}: {r['ate_pct_of_path']} % of the path with closure, "
+              f"{r['ate_pct_without_closure']} % without ({r['improvement']}x), final error "
+              f"{None if r['final_error_m'] is None else round(r['final_error_m'], 3)} m")
     print(f"kidnapped: relocalised {out['kidnapped_relocalised']} of {out['kidnapped_trials']}"
           + (f" ({out['kidnapped_note']})" if out.get("kidnapped_note") else ""))
     print(f"registration NEES {out['registration_nees']} ({out['registration_dof']} degrees of freedom; "
@@ -275,11 +295,16 @@ def main(argv=None) -> int:
                     help="a saved `bench/paper.py --json` output to take the registration NEES from (else --quick is run)")
     ap.add_argument("--skip-runs", action="store_true", help="no demo runs (loop, kidnapped and NEES only)")
     ap.add_argument("--skip-loop", action="store_true", help="no loop evaluation (its keys are null)")
+    ap.add_argument("--loop-seeds", type=int, default=None,
+                    help="loops evaluated, seeds --seed, --seed + 1, ... (default 3; --quick 1); the loop_* keys "
+                         "are --seed's, loop_by_seed has every one")
     args = ap.parse_args(argv)
     runs = args.runs if args.runs is not None else (2 if args.quick else 10)
     trials = args.kidnapped_trials if args.kidnapped_trials is not None else (3 if args.quick else 10)
-    if runs < 0 or trials < 0 or args.burst_rate_hz < 0:
-        print("bench/demo.py: --runs, --kidnapped-trials and --burst-rate-hz must not be negative", file=sys.stderr)
+    loop_seeds = args.loop_seeds if args.loop_seeds is not None else (1 if args.quick else 3)
+    if runs < 0 or trials < 0 or args.burst_rate_hz < 0 or loop_seeds < 1:
+        print("bench/demo.py: --runs, --kidnapped-trials and --burst-rate-hz must not be negative, "
+              "--loop-seeds at least 1", file=sys.stderr)
         return 2
     if not FLYSLAM.exists():
         print(f"bench/demo.py: {FLYSLAM} not found (run deploy/setup.sh)", file=sys.stderr)
@@ -316,20 +341,24 @@ def main(argv=None) -> int:
         out["loop_error"] = "skipped (--skip-loop)"
     else:
         try:
-            rec = loop_recording(args.seed)
-            for closure in (True, False):
-                log(f"flyslam eval on the loop, loop closure {'on' if closure else 'off'} (load {load()[0]:.1f})")
-                r = loop_eval(rec, out_dir, closure, ["--seed", str(args.seed)])
-                out[f"loop_closure_{'on' if closure else 'off'}"] = r
-                log(f"  ATE {r.get('ate_m')} m ({r.get('ate_pct_of_path')} % of the path), "
-                    f"final error {r.get('final_error_m')} m, {r['seconds']} s")
-            on, off = out["loop_closure_on"], out["loop_closure_off"]
-            out.update(loop_ate_pct_of_path=on.get("ate_pct_of_path"),
-                       loop_ate_pct_without_closure=off.get("ate_pct_of_path"),
-                       loop_final_error_m=on.get("final_error_m"),
-                       loop_final_error_without_closure_m=off.get("final_error_m"))
-            if on.get("ate_m") and off.get("ate_m"):
-                out["loop_ate_improvement"] = round(off["ate_m"] / on["ate_m"], 2)
+            # the headline keys are --seed's loop; the further seeds show whether closure helps in general
+            out["loop_by_seed"] = []
+            for k in range(loop_seeds):
+                seed = args.seed + k
+                on, off = loop_pair(seed, out_dir if k == 0 else out_dir / f"loop_seed{seed}")
+                if k == 0:
+                    out.update(loop_closure_on=on, loop_closure_off=off,
+                               loop_ate_pct_of_path=on.get("ate_pct_of_path"),
+                               loop_ate_pct_without_closure=off.get("ate_pct_of_path"),
+                               loop_final_error_m=on.get("final_error_m"),
+                               loop_final_error_without_closure_m=off.get("final_error_m"))
+                    if on.get("ate_m") and off.get("ate_m"):
+                        out["loop_ate_improvement"] = round(off["ate_m"] / on["ate_m"], 2)
+                out["loop_by_seed"].append(dict(
+                    seed=seed, ate_pct_of_path=on.get("ate_pct_of_path"),
+                    ate_pct_without_closure=off.get("ate_pct_of_path"),
+                    improvement=round(off["ate_m"] / on["ate_m"], 2) if on.get("ate_m") and off.get("ate_m") else None,
+                    final_error_m=on.get("final_error_m")))
         except Exception as e:  # noqa: BLE001 - after the demo runs: reported, never losing their results
             out["loop_error"] = f"{type(e).__name__}: {e}"
 
