@@ -93,6 +93,7 @@ KEY_FIGURES: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("frames skipped", "frames_skipped_fraction", "share"),
         ("CPU, all services", "cpu_pct_of_one_core.total", "% of a core"),
         ("per frame", "cpu_ms_per_frame.total", "ms"),
+        ("machine references", "cpu_per_frame_in_references", ""),
         ("ATE", "ate_rmse_m", "m"),
     ]),
     "registration": ("pseudo-distance δ and registration, 5,000 flies", [
