@@ -346,19 +346,19 @@ def main(argv=None) -> int:
             for k in range(loop_seeds):
                 seed = args.seed + k
                 on, off = loop_pair(seed, out_dir if k == 0 else out_dir / f"loop_seed{seed}")
+                improvement = round(off["ate_m"] / on["ate_m"], 2) if on.get("ate_m") and off.get("ate_m") else None
+                out["loop_by_seed"].append(dict(
+                    seed=seed, ate_pct_of_path=on.get("ate_pct_of_path"),
+                    ate_pct_without_closure=off.get("ate_pct_of_path"), improvement=improvement,
+                    final_error_m=on.get("final_error_m")))
                 if k == 0:
                     out.update(loop_closure_on=on, loop_closure_off=off,
                                loop_ate_pct_of_path=on.get("ate_pct_of_path"),
                                loop_ate_pct_without_closure=off.get("ate_pct_of_path"),
                                loop_final_error_m=on.get("final_error_m"),
                                loop_final_error_without_closure_m=off.get("final_error_m"))
-                    if on.get("ate_m") and off.get("ate_m"):
-                        out["loop_ate_improvement"] = round(off["ate_m"] / on["ate_m"], 2)
-                out["loop_by_seed"].append(dict(
-                    seed=seed, ate_pct_of_path=on.get("ate_pct_of_path"),
-                    ate_pct_without_closure=off.get("ate_pct_of_path"),
-                    improvement=round(off["ate_m"] / on["ate_m"], 2) if on.get("ate_m") and off.get("ate_m") else None,
-                    final_error_m=on.get("final_error_m")))
+                    if improvement is not None:
+                        out["loop_ate_improvement"] = improvement
         except Exception as e:  # noqa: BLE001 - after the demo runs: reported, never losing their results
             out["loop_error"] = f"{type(e).__name__}: {e}"
 
