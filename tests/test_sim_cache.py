@@ -1,8 +1,10 @@
 """Cached simulated recordings follow the simulator's code: a stale recording is never reused."""
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
+from common.recording import RecordingReader
 from common.sim import offline
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -39,3 +41,25 @@ def test_the_digest_covers_every_module_the_simulator_imports():
     unlisted = imported - listed - {"common/__init__.py", "common/numba_cache.py", "common/trajectory.py"}
     assert not unlisted, f"the simulator imports {sorted(unlisted)}: add them to SIMULATOR_SOURCES"
     assert all(f.is_file() for f in offline.SIMULATOR_SOURCES)
+
+
+def test_two_writers_of_one_recording_at_once_both_finish_with_a_whole_file(tmp_path):
+    out = tmp_path / "corridor.mcap"
+    start, errors, summaries = threading.Barrier(2), [], []
+
+    def simulate():
+        start.wait()
+        try:
+            summaries.append(offline.simulate_to_recording("corridor", out, seconds=0.3, width=160, height=120))
+        except Exception as e:  # noqa: BLE001 - the test reports it
+            errors.append(e)
+
+    threads = [threading.Thread(target=simulate) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(summaries) == 2
+    frames = sum(rec.key.endswith("stereo/frame") for rec in RecordingReader(out).messages())
+    assert frames == summaries[0]["frames"] > 0
+    assert not list(tmp_path.glob("*.partial"))

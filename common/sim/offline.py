@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -37,7 +39,9 @@ def simulate_to_recording(scenario: str, out: str | Path, seed: int = 0, seconds
     key = lambda stream: f"{robot}/{stream}"  # noqa: E731
     frames = 0
     truth = ([], [])
-    tmp = Path(out).with_suffix(".partial")
+    # a partial file of this writer's own: two benches that make the same recording at once each write
+    # theirs, and the last atomic replace leaves one whole recording (the same bytes either way)
+    tmp = Path(out).with_suffix(f".{os.getpid()}-{threading.get_ident()}.partial")
     with RecordingWriter(tmp) as rec:
         rec.add_config({"generator": "common.sim.offline", **options})
         calib = m.encode(m.calibration_to_msg(sim.calibration, 1, T0_NS))
