@@ -63,3 +63,18 @@ def test_two_writers_of_one_recording_at_once_both_finish_with_a_whole_file(tmp_
     frames = sum(rec.key.endswith("stereo/frame") for rec in RecordingReader(out).messages())
     assert frames == summaries[0]["frames"] > 0
     assert not list(tmp_path.glob("*.partial"))
+
+
+def test_an_interrupted_simulation_leaves_neither_a_recording_nor_a_partial_file(tmp_path):
+    out = tmp_path / "corridor.mcap"
+
+    def interrupt(seconds, frames):
+        raise KeyboardInterrupt
+
+    try:
+        offline.simulate_to_recording("corridor", out, seconds=0.3, width=160, height=120, progress=interrupt)
+    except KeyboardInterrupt:
+        pass
+    else:
+        raise AssertionError("the interrupt did not come through")
+    assert list(tmp_path.iterdir()) == []

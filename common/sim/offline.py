@@ -42,31 +42,35 @@ def simulate_to_recording(scenario: str, out: str | Path, seed: int = 0, seconds
     # a partial file of this writer's own: two benches that make the same recording at once each write
     # theirs, and the last atomic replace leaves one whole recording (the same bytes either way)
     tmp = Path(out).with_suffix(f".{os.getpid()}-{threading.get_ident()}.partial")
-    with RecordingWriter(tmp) as rec:
-        rec.add_config({"generator": "common.sim.offline", **options})
-        calib = m.encode(m.calibration_to_msg(sim.calibration, 1, T0_NS))
-        rec.write(key("stereo/calibration"), calib, T0_NS)
-        rec.add_calibration(calib)
-        target = target_message(scn, T0_NS)
-        if target is not None:
-            rec.write(key("planner/target"), m.encode(target), T0_NS)
-        while not sim.finished and (seconds is None or sim.time_ns * 1e-9 < seconds):
-            for ev in sim.advance(0.02):
-                stamp = T0_NS + ev.stamp_ns
-                if isinstance(ev, OdometryReading):
-                    rec.write(key("odom/wheels"), m.encode(odometry_message(ev, stamp)), stamp)
-                elif isinstance(ev, SonarReading):
-                    rec.write(key("sonar/scan"), m.encode(sonar_message(ev, stamp)), stamp)
-                elif isinstance(ev, CameraDue):
-                    images = sim.render(ev.stamp_ns)
-                    frames += 1
-                    for stream, msg in camera_messages(images, frames, stamp, encoding, depth, quality).items():
-                        rec.write(key(stream), m.encode(msg), stamp)
-                    truth[0].append(stamp)
-                    truth[1].append(images.T_map_base)
-                    if progress:
-                        progress(sim.time_ns * 1e-9, frames)
-    tmp.replace(out)
+    try:
+        with RecordingWriter(tmp) as rec:
+            rec.add_config({"generator": "common.sim.offline", **options})
+            calib = m.encode(m.calibration_to_msg(sim.calibration, 1, T0_NS))
+            rec.write(key("stereo/calibration"), calib, T0_NS)
+            rec.add_calibration(calib)
+            target = target_message(scn, T0_NS)
+            if target is not None:
+                rec.write(key("planner/target"), m.encode(target), T0_NS)
+            while not sim.finished and (seconds is None or sim.time_ns * 1e-9 < seconds):
+                for ev in sim.advance(0.02):
+                    stamp = T0_NS + ev.stamp_ns
+                    if isinstance(ev, OdometryReading):
+                        rec.write(key("odom/wheels"), m.encode(odometry_message(ev, stamp)), stamp)
+                    elif isinstance(ev, SonarReading):
+                        rec.write(key("sonar/scan"), m.encode(sonar_message(ev, stamp)), stamp)
+                    elif isinstance(ev, CameraDue):
+                        images = sim.render(ev.stamp_ns)
+                        frames += 1
+                        for stream, msg in camera_messages(images, frames, stamp, encoding, depth, quality).items():
+                            rec.write(key(stream), m.encode(msg), stamp)
+                        truth[0].append(stamp)
+                        truth[1].append(images.T_map_base)
+                        if progress:
+                            progress(sim.time_ns * 1e-9, frames)
+        tmp.replace(out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)      # (an interrupted simulation leaves no partial file behind)
+        raise
     if truth_tum:
         import numpy as np
         write_tum(truth_tum, np.array(truth[0], np.int64), np.array(truth[1]))

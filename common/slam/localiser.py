@@ -487,9 +487,9 @@ class FlyLocaliser:
                 and old.image is not None and kf.image is not None)
 
     def _photometric_loop(self, old: Keyframe, kf: Keyframe, T_start: np.ndarray):
-        """(kf's pose in the map, '') from the old keyframe's flies aligned into kf's image from the start
-        ``T_start``, or (None, why): when they do not align, or land beyond the loop window from kf's
-        tracked pose (a basin δ's window would not have searched)."""
+        """(kf's pose in the map, '') from the two keyframes aligned on each other's flies from the start
+        ``T_start`` (common.slam.tracking.align_keyframes), or (None, why): when they do not align, or
+        land beyond the loop window from kf's tracked pose (a basin δ's window would not have searched)."""
         c = self.config
         T_new, why = align_keyframes(old, kf, self.calibration.K_rectified, self.T_base_camera, [T_start],
                                      max(1, c.photometric_levels - 1), c.photometric_min_inliers)

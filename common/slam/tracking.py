@@ -153,31 +153,29 @@ def align_keyframes(old, new, K: np.ndarray, T_base_camera: np.ndarray, starts_m
     of the new keyframe; :func:`best_alignment` picks).  (T_map_base, '') or (None, why).
 
     Aligned both ways, the old keyframe's flies into the new image and the new keyframe's flies back
-    into the old image, and the pose halfway between the two kept when both are accepted.  Two views
-    metres apart along a corridor see one scene at two scales, and each way errs along the view in its
-    own direction: on five seeds of the simulated loop (2.5 m between the views) one way was off by
-    -15 to +45 mm along it, the other by -7 to -67 mm, their midpoint by -19 to +4 mm (and one wrong
-    alignment, 134 mm and 0.4° off, was halved)."""
+    into the old image, and the pose halfway between the two kept when both are accepted (either alone
+    when only one is).  Each way rests on one keyframe's fly depths and sees the scene change scale the
+    opposite way, so each errs along the view on its own side; their midpoint cancels much of it."""
     T_bc = np.asarray(T_base_camera, float)
     Kh = half_resolution_K(K)
     old_pyramid, new_pyramid = pyramid(old.image, levels), pyramid(new.image, levels)
-    T_map_oldcam, T_map_newcam = old.T_map_base @ T_bc, new.T_map_base @ T_bc
-    # old's flies into the new image, from T_newcam_oldcam
-    starts = [invert(T @ T_bc) @ T_map_oldcam for T in starts_map_base]
+    T_map_oldcam = old.T_map_base @ T_bc
+    starts = [invert(T @ T_bc) @ T_map_oldcam for T in starts_map_base]          # T_newcam_oldcam
     forward = best_alignment(transform_points(invert(T_bc), old.points.astype(np.float64)), old.fitness,
                              old_pyramid, new_pyramid, Kh, starts, min_inliers)
-    # new's flies into the old image, from T_oldcam_newcam: a start S for new is the old keyframe moved
-    # by the same relative pose the other way (new held at its tracked pose)
-    starts = [invert(new.T_map_base @ invert(T) @ T_map_oldcam) @ T_map_newcam for T in starts_map_base]
     backward = best_alignment(transform_points(invert(T_bc), new.points.astype(np.float64)), new.fitness,
-                              new_pyramid, old_pyramid, Kh, starts, min_inliers)
+                              new_pyramid, old_pyramid, Kh, [invert(S) for S in starts], min_inliers)
     ways = []                   # the new keyframe's base pose in the map, as each accepted way has it
     if _accepted(forward, min_inliers):
         ways.append(T_map_oldcam @ invert(forward.T) @ invert(T_bc))
     if _accepted(backward, min_inliers):
         ways.append(T_map_oldcam @ backward.T @ invert(T_bc))
     if not ways:
-        return None, forward.reason or f"{100 * forward.inliers:.0f} % inliers (< {100 * min_inliers:.0f} %)"
+        return None, f"old into new: {_refusal(forward, min_inliers)}; new into old: {_refusal(backward, min_inliers)}"
     if len(ways) == 1:
         return ways[0], ""
     return ways[0] @ scaled_motion(invert(ways[0]) @ ways[1], 0.5), ""
+
+
+def _refusal(al, min_inliers: float) -> str:
+    return al.reason or f"{100 * al.inliers:.0f} % inliers (< {100 * min_inliers:.0f} %)"
