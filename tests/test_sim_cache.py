@@ -4,6 +4,8 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from common.recording import RecordingReader
 from common.sim import offline
 
@@ -71,10 +73,6 @@ def test_an_interrupted_simulation_leaves_neither_a_recording_nor_a_partial_file
     def interrupt(seconds, frames):
         raise KeyboardInterrupt
 
-    try:
+    with pytest.raises(KeyboardInterrupt):
         offline.simulate_to_recording("corridor", out, seconds=0.3, width=160, height=120, progress=interrupt)
-    except KeyboardInterrupt:
-        pass
-    else:
-        raise AssertionError("the interrupt did not come through")
     assert list(tmp_path.iterdir()) == []

@@ -178,4 +178,5 @@ def align_keyframes(old, new, K: np.ndarray, T_base_camera: np.ndarray, starts_m
 
 
 def _refusal(al, min_inliers: float) -> str:
+    """Why an alignment was not accepted (see _accepted)."""
     return al.reason or f"{100 * al.inliers:.0f} % inliers (< {100 * min_inliers:.0f} %)"
