@@ -341,6 +341,7 @@ class Child:
     spec: ServiceSpec
     argv: list[str]
     log_path: Path
+    cwd: Path = ROOT
     proc: subprocess.Popen | None = None
     restarts: int = 0
     state: str = "pending"  # pending, running, backoff, finished, failed, gave-up, stopped
@@ -361,7 +362,7 @@ class Child:
             # a restarted service continues the run's output, a fresh one never takes an old run's.
             self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT,
                                          env=dict(env, FLYSLAM_RESTARTS=str(self.restarts)),
-                                         preexec_fn=_die_with_parent, cwd=ROOT)
+                                         preexec_fn=_die_with_parent, cwd=self.cwd)
         if self.watchdog is not None:
             self.watchdog.watch(self.proc.pid)   # setpgrp in the child: its pgid is its pid
         self.state, self.started_at = "running", time.monotonic()
@@ -397,6 +398,10 @@ class Child:
 class Supervisor:
     def __init__(self, launch: LaunchFile, out: Path, bus_opts, duration_s: float | None):
         self.launch, self.out, self.bus_opts = launch, out, bus_opts
+        # Services run where `flyslam run` was typed, so a relative path given to the launch (--var
+        # recording=k00.mcap) means what the user meant; -P keeps that folder off their sys.path, so a
+        # package of the user's named like one of flyslam's does not shadow it (flyslam comes from PYTHONPATH).
+        self.cwd = Path.cwd()
         self.duration_s = launch.duration_s if duration_s is None else duration_s
         self.children: list[Child] = []
         self.failed_required: list[str] = []
@@ -431,8 +436,8 @@ class Supervisor:
                 args = [self._substitute(a) for a in spec.args]
             except (KeyError, IndexError) as e:
                 raise LaunchError(f"{self.launch.path}: {spec.name}: unknown placeholder {e} in args") from None
-            argv = [sys.executable, "-m", spec.module, *args, *bus_argv]
-            self.children.append(Child(spec, argv, self.out / "logs" / f"{spec.name}.log"))
+            argv = [sys.executable, "-P", "-m", spec.module, *args, *bus_argv]
+            self.children.append(Child(spec, argv, self.out / "logs" / f"{spec.name}.log", self.cwd))
         config = {"launch": str(self.launch.path), "duration_s": self.duration_s, "out": str(self.out),
                   "bus": asdict(self.bus_opts),
                   "services": [{**asdict(c.spec), "argv": c.argv} for c in self.children]}
