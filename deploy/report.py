@@ -9,6 +9,8 @@ lists every segment (each entry a list of paths) and the view command opens ever
 from __future__ import annotations
 
 import json
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -104,6 +106,18 @@ def pipeline_summary(out: Path) -> dict:
     return summary
 
 
+def rerun_command() -> str:
+    """The rerun viewer installed beside this Python (the venv's), as a path the user can type here:
+    relative to the current folder when it is inside it, else absolute; plain ``rerun`` when there is none."""
+    exe = Path(sys.executable).parent / "rerun"
+    if not exe.is_file():
+        return "rerun"
+    try:
+        return os.path.relpath(exe) if exe.resolve().is_relative_to(Path.cwd().resolve()) else str(exe)
+    except (OSError, ValueError):
+        return str(exe)
+
+
 def format_pipeline_summary(s: dict) -> str:
     def v(key, unit=""):
         return "-" if s.get(key) is None else f"{s[key]}{unit}"
@@ -128,5 +142,5 @@ def format_pipeline_summary(s: dict) -> str:
     lines.append("  files:")
     lines += [f"    {k:<10} {' '.join(paths)}" for k, paths in s.get("files", {}).items()]
     if "rerun" in s.get("files", {}):
-        lines.append(f"  view it:  .venv/bin/rerun {' '.join(s['files']['rerun'])}")
+        lines.append(f"  view it:  {rerun_command()} {' '.join(s['files']['rerun'])}")
     return "\n".join(lines)

@@ -80,3 +80,15 @@ def test_summary_counts_a_replays_frames_not_its_messages(tmp_path):
     s = pipeline_summary(tmp_path)
     assert s["frames"] == 100
     assert "frames replayed      100" in format_pipeline_summary(s)
+
+
+def test_the_summarys_view_command_runs_from_wherever_the_run_was_started(tmp_path, monkeypatch):
+    """`flyslam run` typed outside the repository: the 'view it' line names a rerun that exists there."""
+    import shutil
+    from pathlib import Path
+
+    (tmp_path / "run.rrd").write_bytes(b"")
+    monkeypatch.chdir(tmp_path)
+    line = next(x for x in format_pipeline_summary(pipeline_summary(tmp_path)).splitlines() if "view it" in x)
+    viewer = line.split()[2]
+    assert Path(viewer).is_file() or shutil.which(viewer), line
