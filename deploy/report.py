@@ -52,9 +52,14 @@ def pipeline_summary(out: Path) -> dict:
     sim = services.get("sim", {})
     evolver = services.get("evolver", {})
     replay = services.get("replay", {})
-    # the simulator's progress is frames; a replay's is messages, of which it counts the frames
-    summary["frames"] = sim.get("progress") if sim else replay.get("counters", {}).get("frames_replayed")
-    summary["frames_source"] = "replayed" if not sim and replay else "rendered"
+    camera = services.get("camera", {})
+    # the simulator's and the camera's progress is frames; a replay's is messages, of which it counts the frames
+    if sim or camera:
+        summary["frames"] = (sim or camera).get("progress")
+        summary["frames_source"] = "rendered" if sim else "captured"
+    else:
+        summary["frames"] = replay.get("counters", {}).get("frames_replayed")
+        summary["frames_source"] = "replayed" if replay else "rendered"
     summary["frames_used_by_evolver"] = evolver.get("progress")
     rates = evolver.get("rates", {})
     summary["frames_skipped"] = int(rates.get("frames_skipped", 0)) if rates else None
@@ -85,10 +90,20 @@ def pipeline_summary(out: Path) -> dict:
                 summary["final_true_xy"] = [round(float(v), 2) for v in gp[-1][:2, 3]]
         except (TrajectoryFormatError, TrajectoryMismatch, ValueError) as e:
             summary["ate_error"] = str(e)
+    elif est_path.exists():   # a live camera: no truth, but what the localiser made of the run
+        summary["ate_error"] = "no ground truth to compare with"
+        try:
+            es, ep = read_tum(est_path)
+            summary["estimated_poses"] = len(es)
+            summary["estimated_path_m"] = round(float(np.linalg.norm(np.diff(ep[:, :3, 3], axis=0), axis=1).sum()), 2)
+        except (TrajectoryFormatError, ValueError) as e:
+            summary["ate_error"] += f"; {est_path.name}: {e}"
     else:
         summary["ate_error"] = "no estimated and ground-truth trajectories"
     cmd, n_cmd, target = _last_command(out / "recording.mcap")
     summary["commands"] = n_cmd
+    # a launch without a planner (a replayed recording, a camera) has no target to report on
+    summary["planner"] = bool(n_cmd) or "planner" in services or not services
     if cmd is not None:
         summary["target"] = "reached" if cmd.reason == "target reached" else f"not reached: last command '{cmd.reason}'"
     if target is not None and "final_true_xy" in summary:
@@ -131,12 +146,15 @@ def format_pipeline_summary(s: dict) -> str:
                      f"({s['ate_pct_of_path']} % of the path)")
     else:
         lines.append(f"  ATE vs ground truth  - ({s.get('ate_error')})")
+    if "estimated_path_m" in s:
+        lines.append(f"  estimated path       {s['estimated_poses']} poses, {s['estimated_path_m']} m")
     if "final_position_error_m" in s:
         lines.append(f"  final pose error     {s['final_position_error_m']} m (estimate vs truth at the end, from where the map started)")
-    target_line = s.get('target', 'unknown (no planner command recorded)')
-    if "true_distance_to_target_m" in s:
-        target_line += f" (true distance to the target at the end: {s['true_distance_to_target_m']} m)"
-    lines.append(f"  target               {target_line}")
+    if s.get("planner", True):
+        target_line = s.get('target', 'unknown (no planner command recorded)')
+        if "true_distance_to_target_m" in s:
+            target_line += f" (true distance to the target at the end: {s['true_distance_to_target_m']} m)"
+        lines.append(f"  target               {target_line}")
     if s.get("restarts"):
         lines.append(f"  restarts             {s['restarts']}")
     lines.append("  files:")

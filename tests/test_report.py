@@ -82,6 +82,20 @@ def test_summary_counts_a_replays_frames_not_its_messages(tmp_path):
     assert "frames replayed      100" in format_pipeline_summary(s)
 
 
+def test_summary_counts_a_cameras_frames(tmp_path):
+    """camera.toml's run: the camera's frames are the source (the summary said 'frames rendered -')."""
+    (tmp_path / "run.json").write_text(json.dumps({"services": {
+        "camera": {"progress": 60, "counters": {"published": 68}},
+        "evolver": {"progress": 58, "rates": {"frames_skipped": 2.0}}}}))
+    stamps = np.arange(58, dtype=np.int64) * 100_000_000
+    write_tum(tmp_path / "estimated.tum", stamps, np.array([planar_pose(0.9 * k, 0.0, 0.0) for k in range(58)]))
+    text = format_pipeline_summary(pipeline_summary(tmp_path))
+    assert "frames captured      60" in text and "skipped: 2" in text
+    # no truth for a camera, but the summary says what the localiser made of the run
+    assert "no ground truth" in text and "estimated path       58 poses, 51.3 m" in text
+    assert "target" not in text          # no planner ran
+
+
 def test_the_summarys_view_command_runs_from_wherever_the_run_was_started(tmp_path, monkeypatch):
     """`flyslam run` typed outside the repository: the 'view it' line names a rerun that exists there."""
     import shutil
