@@ -28,13 +28,17 @@ from deploy.progress import Progress
 
 
 def plot(path: Path, result, odom_in_map, stamps, estimated) -> None:
-    """Truth, odometry and the estimate from above, in the map frame: the truth is moved so that it
-    starts where the estimate does (a recording's world frame need not start at the map's origin)."""
+    """Truth (when the recording has it), odometry and the estimate from above, in the map frame: the
+    truth is moved so that it starts where the estimate does (a recording's world frame need not start
+    at the map's origin)."""
     import cv2
     size, margin = 800, 40
-    i = min(int(np.searchsorted(result.truth_stamps, stamps[0])), len(result.truth) - 1)
-    T_map_world = estimated[0] @ np.linalg.inv(result.truth[i])
-    tracks = {"ground truth": (np.array([(T_map_world @ T)[:3, 3] for T in result.truth]), (60, 160, 60)),
+    truth = np.zeros((0, 3))
+    if result.truth:
+        i = min(int(np.searchsorted(result.truth_stamps, stamps[0])), len(result.truth) - 1)
+        T_map_world = estimated[0] @ np.linalg.inv(result.truth[i])
+        truth = np.array([(T_map_world @ T)[:3, 3] for T in result.truth])
+    tracks = {"ground truth": (truth, (60, 160, 60)),
               "odometry": (np.array([T[:3, 3] for T in odom_in_map]) if odom_in_map else np.zeros((0, 3)), (40, 40, 220)),
               "flyslam": (np.array([T[:3, 3] for T in estimated]), (200, 90, 20))}
     pts = np.concatenate([t for t, _ in tracks.values() if len(t)])[:, :2]
@@ -45,6 +49,7 @@ def plot(path: Path, result, odom_in_map, stamps, estimated) -> None:
     def px(p):  # map x right, y up
         return np.stack([margin + (p[:, 0] - lo[0]) * scale, size - margin - (p[:, 1] - lo[1]) * scale], 1).astype(np.int32)
 
+    tracks = {name: t for name, t in tracks.items() if len(t[0])}     # (the legend names what is drawn)
     for i, (name, (track, colour)) in enumerate(tracks.items()):
         if len(track) > 1:
             cv2.polylines(img, [px(track[:, :2])], False, colour, 2, cv2.LINE_AA)
@@ -159,6 +164,10 @@ def main(argv=None) -> int:
             metrics["factor_nees"] = factor_nees(
                 backend.graph.edges().values(), {k: kf.stamp_ns for k, kf in backend.archive.items()},
                 result.truth_stamps, result.truth, planar=backend.planar)
+    else:     # a user's own camera: no truth to score, but the estimate is still worth a look
+        steps = np.diff(np.asarray(final_poses)[:, :3, 3], axis=0) if len(final_poses) else np.zeros((0, 3))
+        metrics["estimated"] = {"poses": len(final_stamps), "path_length_m": round(float(np.linalg.norm(steps, axis=1).sum()), 3)}
+    if len(final_stamps) > 1:
         plot(out / "trajectories.png", result, odom_in_map, final_stamps, final_poses)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     print(f"frames {result.frames} at {result.frames_per_s:.2f} frames/s, registered {100 * result.registered_fraction:.0f} %, "
@@ -174,7 +183,10 @@ def main(argv=None) -> int:
     for kind, r in metrics.get("factor_nees", {}).items():
         print(f"pose graph {kind} factors against the truth: NEES {r['nees_mean']:.2f} (median {r['nees_median']:.2f}, "
               f"{r['factors']} factors; {r['dof']} if their covariances are right)")
-    print(f"wrote {out}/metrics.json, estimated.tum" + (", trajectories.png" if result.truth else ""))
+    if "estimated" in metrics:
+        print(f"no ground truth in {args.recording}: the estimate only, {metrics['estimated']['poses']} poses over "
+              f"{metrics['estimated']['path_length_m']:.1f} m")
+    print(f"wrote {out}/metrics.json, estimated.tum" + (", trajectories.png" if len(final_stamps) > 1 else ""))
     return 0
 
 
