@@ -250,9 +250,10 @@ def body(node, args) -> int:
         raise SystemExit("bridge: --image-hz, --pose-hz and --map-period-s must be positive")
     sinks, grpc_uri = open_sinks(args)
     rec = rr.RecordingStream(args.application_id, send_properties=True)
-    rec.set_sinks(*sinks, default_blueprint=blueprint())
+    # the planner's views join the layout when the planner shows up (a replay or a camera has none)
+    rec.set_sinks(*sinks, default_blueprint=blueprint(planner=False))
     viz = RerunLogger(rec, max_flies=args.max_flies, max_map_points=args.max_map_points,
-                      jpeg_quality=args.jpeg_quality, pose_period_s=1.0 / args.pose_hz)
+                      jpeg_quality=args.jpeg_quality, pose_period_s=1.0 / args.pose_hz, planner_layout=False)
     web = start_web_viewer(args, grpc_uri) if grpc_uri else None
     log.info("live: rerun %s; recording to %s", grpc_uri, args.rrd)
     inbox = Inbox(node)

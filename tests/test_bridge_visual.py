@@ -201,3 +201,33 @@ def test_a_flood_of_poses_is_logged_at_the_pose_rate_not_the_publishers(tmp_path
     moves = rows[f"/{P.ROBOT}"]["Transform3D:translation"]
     assert 25 <= len(moves) <= 31
     assert trajectory_points(rows, "fusion/pose")[-1][0] > 1.0 - 1 / 30 - 1e-6
+
+
+def _view_origins(container) -> set[str]:
+    """The origins of every view under a blueprint container."""
+    origins = set()
+    for item in getattr(container, "contents", []):
+        if hasattr(item, "origin"):
+            origins.add(str(item.origin))
+        else:
+            origins |= _view_origins(item)
+    return origins
+
+
+def test_the_planners_views_join_the_layout_when_the_planner_shows_up(tmp_path):
+    """A replayed recording or a camera has no planner: its run's layout gives the images the space of
+    the empty harmonic-field and command views, which come back once the planner is alive."""
+    assert P.FIELD in _view_origins(blueprint().root_container)
+    assert P.FIELD not in _view_origins(blueprint(planner=False).root_container)
+    assert P.LEFT in _view_origins(blueprint(planner=False).root_container)
+    rec = rr.RecordingStream("flyslam-test")
+    rec.save(str(tmp_path / "run.rrd"), default_blueprint=blueprint(planner=False))
+    sent = []
+    rec.send_blueprint = lambda bp, **kw: sent.append(bp)
+    logger = RerunLogger(rec, planner_layout=False)
+    logger.liveliness("evolver", True)
+    assert sent == []
+    logger.liveliness("planner", True)
+    logger.command(m.VelocityCommand(linear_mps=0.1))
+    assert len(sent) == 1 and P.FIELD in _view_origins(sent[0].root_container)
+    rec.disconnect()

@@ -106,12 +106,15 @@ def subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray | slice:
 class RerunLogger:
     """Logs flyslam messages into one :class:`rerun.RecordingStream`. Call :meth:`handle` per message.
 
+    ``planner_layout``: whether the stream's layout already has the planner's views; when not, the
+    planner's first sign of life (its liveliness token, a field, a command) sends the layout that has.
     Not thread-safe: feed it from one thread (the bridge's main loop).
     """
 
     def __init__(self, rec: rr.RecordingStream, *, max_flies: int = 20_000, max_map_points: int = 100_000,
                  jpeg_quality: int = 80, trail_min_step_m: float = 0.01, trail_period_s: float = 0.2,
-                 trail_segment_points: int = 200, pose_period_s: float = 1 / 30, seed: int = 0):
+                 trail_segment_points: int = 200, pose_period_s: float = 1 / 30, seed: int = 0,
+                 planner_layout: bool = True):
         if max_flies <= 0 or max_map_points <= 0:
             raise ValueError("max_flies and max_map_points must be positive")
         if not 1 <= jpeg_quality <= 100:
@@ -134,6 +137,7 @@ class RerunLogger:
         self._series_styled: set[str] = set()
         self._service_colour: dict[str, tuple] = {}
         self.counts: dict[str, int] = {}
+        self.planner_layout = planner_layout
         self._handlers = {
             m.StereoCalibrationMsg: self.calibration, m.StereoFrame: self.frame, m.FlyPopulation: self.population,
             m.FlyMap: self.fly_map, m.HarmonicField: self.field, m.Target: self.target,
@@ -335,8 +339,14 @@ class RerunLogger:
                                                   labels=[str(k.id) for k in msg.keyframes], show_labels=False))
 
     # ------------------------------------------------------------------------------- planning
+    def _planner_seen(self) -> None:
+        if not self.planner_layout:
+            self.planner_layout = True
+            self.rec.send_blueprint(P.blueprint(planner=True))
+
     def field(self, msg: m.HarmonicField) -> None:
         """The harmonic field as a heat-map image (map +y up) with the planned path on it and in 3-D."""
+        self._planner_seen()
         stamp = msg.header.stamp_ns or self.sensor_ns
         self._at(stamp)
         img = field_image(msg.values)
@@ -361,6 +371,7 @@ class RerunLogger:
 
     def command(self, msg: m.VelocityCommand) -> None:
         """Commanded speeds as scalars; stops (and their reason) as events."""
+        self._planner_seen()
         stamp = msg.header.stamp_ns or self.sensor_ns
         self._at(stamp)
         self.rec.log(f"{P.CMD}/linear_mps", rr.Scalars(msg.linear_mps))
@@ -402,6 +413,8 @@ class RerunLogger:
 
     def liveliness(self, service: str, alive: bool) -> None:
         """1 while the service's liveliness token exists, 0 after it vanished (exit or crash)."""
+        if alive and service == "planner":
+            self._planner_seen()
         self._at(self.sensor_ns)
         self._series(f"{P.ALIVE}/{P.service_part(service)}", service, service, 1.0 if alive else 0.0)
         self._event(f"{service}: {'alive' if alive else 'gone'}", "INFO" if alive else "WARN")

@@ -61,9 +61,10 @@ def service_part(name: str) -> str:
     return rr.escape_entity_path_part(name or "unnamed")
 
 
-def blueprint() -> rrb.Blueprint:
-    """Layout: the 3-D world and health plots on the left; the left image with flies, the right image,
-    the harmonic field and the commands on the right. Sensor time is the default timeline."""
+def blueprint(planner: bool = True) -> rrb.Blueprint:
+    """Layout: the 3-D world and health plots on the left; the left image with flies, the right image
+    and, with ``planner``, the harmonic field and the commands on the right (a run without a planner, a
+    replayed recording or a camera, gives the images that space). Sensor time is the default timeline."""
     world = rrb.Spatial3DView(
         name="World (map frame)", origin=WORLD,
         eye_controls=rrb.EyeControls3D(position=(-2.0, -3.0, 2.5), look_target=(1.5, 0.0, 0.3), eye_up=(0, 0, 1)),
@@ -82,7 +83,8 @@ def blueprint() -> rrb.Blueprint:
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(world, health, row_shares=[3, 1.3]),
-            rrb.Vertical(left, right, rrb.Horizontal(field, cmd), row_shares=[1, 1, 1]),
+            rrb.Vertical(left, right, rrb.Horizontal(field, cmd), row_shares=[1, 1, 1]) if planner
+            else rrb.Vertical(left, right, row_shares=[1, 1]),
             column_shares=[3, 2],
         ),
         rrb.BlueprintPanel(state="collapsed"),
