@@ -25,6 +25,7 @@ import logging
 import os
 import re
 import signal
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -179,6 +180,45 @@ def open_session(opts: BusOptions) -> zenoh.Session:
         return zenoh.open(conf)
     except zenoh.ZError as e:
         raise BusConfigError(f"cannot open the Zenoh session: {_zenoh_reason(e)}") from None
+
+
+def _hub_endpoint(conf: zenoh.Config) -> tuple[str, int] | None:
+    """(host, port) of the first fixed-port TCP endpoint the configuration listens on: the local hub."""
+    try:
+        endpoints = json.loads(conf.get_json("listen/endpoints"))
+    except (zenoh.ZError, ValueError, TypeError):
+        return None
+    for e in endpoints if isinstance(endpoints, list) else []:
+        m = re.fullmatch(r"tcp/\[?([^\]]+?)\]?:(\d+)", str(e).split("#")[0])
+        if m and int(m.group(2)) > 0:
+            return m.group(1), int(m.group(2))
+    return None
+
+
+def _port_taken(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError:
+            return True
+    return False
+
+
+def services_alive(opts: BusOptions, wait_s: float = 2.0) -> list[str]:
+    """The services of ``opts.robot`` alive on the bus these options join (their liveliness tokens), or
+    [] at once when nobody holds the hub's port: a second run on a machine would otherwise join the first
+    one's bus and each would take the other's frames."""
+    conf = make_config(opts)
+    hub = _hub_endpoint(conf)
+    if hub is None or not _port_taken(*hub):
+        return []
+    with zenoh.open(conf) as session:
+        deadline = time.monotonic() + wait_s
+        while not list(session.info.peers_zid()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        replies = session.liveliness().get(f"{opts.robot}/health/*", timeout=wait_s)
+        return sorted({str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None})
 
 
 # ----------------------------------------------------------------------------------- counters

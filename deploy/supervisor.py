@@ -63,7 +63,8 @@ from pathlib import Path
 
 import zenoh
 
-from common.bus import BusConfigError, Node, add_bus_arguments, bus_options, make_config, setup_logging
+from common.bus import (BusConfigError, Node, add_bus_arguments, bus_options, make_config, services_alive,
+                        setup_logging)
 from common.messages import DecodeError, Heartbeat, decode
 
 log = logging.getLogger("flyslam.supervisor")
@@ -693,6 +694,12 @@ def main(argv=None) -> int:
         make_config(opts)   # a bad bus flag fails here, before the run folder is made or anything starts
     except BusConfigError as e:
         print(f"flyslam run: {e}", file=sys.stderr)
+        return 2
+    taken = services_alive(opts)
+    if taken:
+        print(f"flyslam run: another run's services ({', '.join(taken)}) are on this bus as robot "
+              f"'{opts.robot}': stop that run, or give this one its own --hub tcp/127.0.0.1:PORT or --robot NAME",
+              file=sys.stderr)
         return 2
     sup = Supervisor(launch, out.resolve(), opts, args.duration)
     try:

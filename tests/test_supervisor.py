@@ -288,3 +288,32 @@ source = "nowhere.mcap"
     assert done.returncode == 0, done.stdout + done.stderr
     frames = sum(1 for _ in RecordingReader(work / "run" / "recording.mcap").messages())
     assert frames >= 15, done.stdout
+
+
+def test_a_second_run_on_a_bus_in_use_refuses_instead_of_mixing_the_two(tmp_path, zenoh_port):
+    """Two `flyslam run` at once on one machine shared the bus: each evolver took the other's frames and
+    both runs' results were garbage, silently.  The second now refuses in one line and starts nothing;
+    with its own --robot it may share the bus (several robots on one network)."""
+    source = tmp_path / "source.mcap"
+    write_source_recording(source, frames=60)
+    first = start_supervisor(tmp_path, zenoh_port, LAUNCH.format(duration=0, source=source))
+    try:
+        assert wait_until(lambda: sum("services." in cmdline(p) for p in children_of(first.pid)) == 2, 20)
+        second_out = tmp_path / "second"
+        argv = [sys.executable, "-m", "deploy.cli", "run", str(tmp_path / "launch.toml"), "--out", str(second_out),
+                "--hub", hub(zenoh_port), "--duration", "5"]
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        second = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=60, env=env)
+        assert second.returncode == 2, second.stdout + second.stderr
+        err = second.stderr.strip()
+        assert err.count("\n") == 0 and "rig" in err and "--robot" in err and "recorder" in err, err
+        assert not (second_out / "run.json").exists()
+        other = subprocess.run(argv + ["--robot", "other"], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                               env=env)
+        assert other.returncode == 0, other.stdout + other.stderr
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=60)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert first.returncode == 0
