@@ -43,3 +43,32 @@ def test_a_recording_without_ground_truth_gets_its_estimate_drawn_and_measured(t
     assert estimated["poses"] >= 8 and estimated["path_length_m"] > 0.05
     assert (out / "trajectories.png").stat().st_size > 1000
     assert "no ground truth" in capsys.readouterr().out
+
+
+def test_ctrl_c_ends_an_eval_where_it_is_and_keeps_what_was_done(tmp_path):
+    """A long eval stopped with Ctrl-C writes the trajectory and metrics of the frames it got through
+    (exit 130), as a truncated recording's readable part is evaluated; before, everything was lost."""
+    import signal
+    import subprocess
+    import sys
+
+    from tests.helpers import ROOT
+
+    out = tmp_path / "eval"
+    proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "eval", str(CORRIDOR), "--out", str(out),
+                             "--population", "1500", "--generations", "10"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    lines = []
+    for line in proc.stdout:          # the progress line every 25 frames: well into the run
+        lines.append(line)
+        if "[eval] 25 frames" in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    rest, _ = proc.communicate(timeout=120)
+    text = "".join(lines) + rest
+    assert proc.returncode == 130, text
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["interrupted"] and 25 <= metrics["frames"] < 301, metrics["frames"]
+    assert "ate_rmse_m" in metrics["flyslam"] and (out / "estimated.tum").stat().st_size > 0
+    assert "interrupted: evaluating the first" in text

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -56,6 +57,35 @@ def plot(path: Path, result, odom_in_map, stamps, estimated) -> None:
         cv2.putText(img, name, (margin, 25 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA)
     cv2.putText(img, f"{1 / scale:.3f} m/px", (size - 180, size - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
     cv2.imwrite(str(path), img)
+
+
+class FirstInterruptEnds:
+    """Ctrl-C ends the recording where it is: the frames evaluated so far are scored and written (an
+    hour's run is not lost to a late Ctrl-C); a second Ctrl-C aborts at once.  Main thread only."""
+
+    def __init__(self):
+        self.interrupted = False
+        self._previous = None
+
+    def messages(self, messages):
+        for msg in messages:
+            if self.interrupted:
+                return
+            yield msg
+
+    def _on_interrupt(self, _signum, _frame):
+        if self.interrupted:
+            raise KeyboardInterrupt
+        self.interrupted = True
+
+    def __enter__(self):
+        self._previous = signal.getsignal(signal.SIGINT)
+        if self._previous is not signal.SIG_IGN:      # (a background job ignores Ctrl-C: leave it so)
+            signal.signal(signal.SIGINT, self._on_interrupt)
+        return self
+
+    def __exit__(self, *exc):
+        signal.signal(signal.SIGINT, self._previous)
 
 
 def parse_overrides(items: list[str]):
@@ -118,11 +148,13 @@ def main(argv=None) -> int:
     def progress(n, status):
         bar.update(n, f"frames, last: {status[:50]}")
 
-    result = run_lockstep(reader.messages(), generations_per_frame=args.generations, seed=args.seed,
-                          evolver_config=evolver_config,
-                          localiser_config=localiser_config,
-                          max_frames=args.max_frames, progress=progress)
+    with FirstInterruptEnds() as interrupt:
+        result = run_lockstep(interrupt.messages(reader.messages()), generations_per_frame=args.generations,
+                              seed=args.seed, evolver_config=evolver_config, localiser_config=localiser_config,
+                              max_frames=args.max_frames, progress=progress)
     bar.done()
+    if interrupt.interrupted:
+        print(f"flyslam eval: interrupted: evaluating the first {result.frames} frames", file=sys.stderr)
     if reader.error:
         print(f"flyslam eval: warning: {args.recording}: {reader.error}; evaluated the readable part", file=sys.stderr)
     if result.frames == 0:
@@ -134,7 +166,7 @@ def main(argv=None) -> int:
     # frame, are "flyslam_online".
     final_stamps, final_poses = result.localiser.trajectory()
     write_tum(out / "estimated.tum", final_stamps, np.asarray(final_poses))
-    metrics = {"recording": str(args.recording), "frames": result.frames,
+    metrics = {"recording": str(args.recording), "frames": result.frames, "interrupted": interrupt.interrupted,
                "frames_per_s": round(result.frames_per_s, 3), "registered_fraction": round(result.registered_fraction, 3),
                "keyframes": result.keyframes, "pose_graph_failed_updates": result.graph_failed_updates,
                "pose_graph_unsolved_keyframes": result.graph_failures}
@@ -187,7 +219,7 @@ def main(argv=None) -> int:
         print(f"no ground truth in {args.recording}: the estimate only, {metrics['estimated']['poses']} poses over "
               f"{metrics['estimated']['path_length_m']:.1f} m")
     print(f"wrote {out}/metrics.json, estimated.tum" + (", trajectories.png" if len(final_stamps) > 1 else ""))
-    return 0
+    return 130 if interrupt.interrupted else 0
 
 
 if __name__ == "__main__":
