@@ -298,7 +298,8 @@ def test_a_second_run_on_a_bus_in_use_refuses_instead_of_mixing_the_two(tmp_path
     write_source_recording(source, frames=60)
     first = start_supervisor(tmp_path, zenoh_port, LAUNCH.format(duration=0, source=source))
     try:
-        assert wait_until(lambda: sum("services." in cmdline(p) for p in children_of(first.pid)) == 2, 20)
+        recording = tmp_path / "run" / "recording.mcap"     # the recorder is on the bus, recording the replay
+        assert wait_until(lambda: recording.exists() and recording.stat().st_size > 20_000, 30)
         second_out = tmp_path / "second"
         argv = [sys.executable, "-m", "deploy.cli", "run", str(tmp_path / "launch.toml"), "--out", str(second_out),
                 "--hub", hub(zenoh_port), "--duration", "5"]
