@@ -195,14 +195,15 @@ def _hub_endpoint(conf: zenoh.Config) -> tuple[str, int] | None:
     return None
 
 
-def _port_taken(host: str, port: int) -> bool:
+def port_free(host: str, port: int) -> bool:
+    """Whether a TCP listener could bind ``host:port`` now (IPv6 when the host has a colon)."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError:
-            return True
-    return False
+            return False
+    return True
 
 
 def services_alive(opts: BusOptions, wait_s: float = 2.0) -> list[str]:
@@ -211,7 +212,7 @@ def services_alive(opts: BusOptions, wait_s: float = 2.0) -> list[str]:
     one's bus and each would take the other's frames."""
     conf = make_config(opts)
     hub = _hub_endpoint(conf)
-    if hub is None or not _port_taken(*hub):
+    if hub is None or port_free(*hub):
         return []
     with zenoh.open(conf) as session:
         deadline = time.monotonic() + wait_s

@@ -20,7 +20,6 @@ from __future__ import annotations
 import collections
 import logging
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -36,6 +35,7 @@ os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
 import rerun as rr  # noqa: E402
 
 from common import streams as S
+from common.bus import port_free
 from common.recording import claim_segment
 from common.viz import RerunLogger, blueprint
 from common.viz.logger import PoseRate, finite_pose
@@ -74,16 +74,6 @@ def build_parser():
     return p
 
 
-def _port_free(host: str, port: int) -> bool:
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind((host, port))
-        except OSError:
-            return False
-    return True
-
-
 def open_sinks(args) -> tuple[list, str | None]:
     """(sinks, live gRPC URI or None). A busy live port is reported and skipped, never fatal: the file
     matters more than the live view (rerun would otherwise fail every flush)."""
@@ -96,7 +86,7 @@ def open_sinks(args) -> tuple[list, str | None]:
         log.info("writing %s", path)
         sinks.append(rr.FileSink(str(path)))
     if args.grpc_port:
-        if _port_free(args.bind, args.grpc_port):
+        if port_free(args.bind, args.grpc_port):
             server = rr.GrpcServerSink(bind_ip=args.bind, port=args.grpc_port,
                                        server_memory_limit=args.server_memory_limit)
             sinks.append(server)
@@ -123,7 +113,7 @@ def rerun_binary() -> str:
 def start_web_viewer(args, grpc_uri: str) -> subprocess.Popen | None:
     if not args.web_port:
         return None
-    if not _port_free(args.bind, args.web_port):
+    if not port_free(args.bind, args.web_port):
         log.warning("port %s:%d is busy: no web viewer", args.bind, args.web_port)
         return None
     cmd = [rerun_binary(), "--serve-web", "--bind", args.bind,
