@@ -19,6 +19,7 @@ it never raises out of a subscription.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib.resources
 import json
 import logging
@@ -183,43 +184,59 @@ def open_session(opts: BusOptions) -> zenoh.Session:
 
 
 def _hub_endpoint(conf: zenoh.Config) -> tuple[str, int] | None:
-    """(host, port) of the first fixed-port TCP endpoint the configuration listens on: the local hub."""
+    """(host, port) of the first fixed-port TCP-based endpoint (tcp, tls, ws) the configuration listens
+    on: the local hub."""
     try:
         endpoints = json.loads(conf.get_json("listen/endpoints"))
     except (zenoh.ZError, ValueError, TypeError):
         return None
     for e in endpoints if isinstance(endpoints, list) else []:
-        m = re.fullmatch(r"tcp/\[?([^\]]+?)\]?:(\d+)", str(e).split("#")[0])
+        m = re.fullmatch(r"(?:tcp|tls|ws)/\[?([^\]]+?)\]?:(\d+)", re.split(r"[?#]", str(e))[0])
         if m and int(m.group(2)) > 0:
             return m.group(1), int(m.group(2))
     return None
 
 
 def port_free(host: str, port: int) -> bool:
-    """Whether a TCP listener could bind ``host:port`` now (IPv6 when the host has a colon)."""
+    """Whether a TCP listener could bind ``host:port`` now (IPv6 when the host has a colon); an address
+    this machine does not have counts as free (nobody here holds it)."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
-        except OSError:
-            return False
+        except OSError as e:
+            return e.errno != errno.EADDRINUSE
     return True
 
 
 def services_alive(opts: BusOptions, wait_s: float = 2.0) -> list[str]:
     """The services of ``opts.robot`` alive on the bus these options join (their liveliness tokens), or
     [] at once when nobody holds the hub's port: a second run on a machine would otherwise join the first
-    one's bus and each would take the other's frames."""
+    one's bus and each would take the other's frames.  A peer sees the tokens of the sessions it has
+    linked to, and gossip links them one by one: asked until two answers agree, within ``wait_s``.
+    Raises BusConfigError when the session cannot open."""
     conf = make_config(opts)
     hub = _hub_endpoint(conf)
     if hub is None or port_free(*hub):
         return []
-    with zenoh.open(conf) as session:
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise BusConfigError(f"cannot open the Zenoh session: {_zenoh_reason(e)}") from None
+    with session:
         deadline = time.monotonic() + wait_s
-        while not list(session.info.peers_zid()) and time.monotonic() < deadline:
+        while (not list(session.info.peers_zid()) and not list(session.info.routers_zid())
+               and time.monotonic() < deadline):
             time.sleep(0.05)
-        replies = session.liveliness().get(f"{opts.robot}/health/*", timeout=wait_s)
-        return sorted({str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None})
+        names: list[str] = []
+        while time.monotonic() < deadline:
+            replies = session.liveliness().get(f"{opts.robot}/health/*", timeout=0.5)
+            answer = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None})
+            if answer and answer == names:
+                break
+            names = answer
+            time.sleep(0.2)
+        return names
 
 
 # ----------------------------------------------------------------------------------- counters

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -128,9 +129,10 @@ def rerun_command() -> str:
     if not exe.is_file():
         return "rerun"
     try:
-        return os.path.relpath(exe) if exe.resolve().is_relative_to(Path.cwd().resolve()) else str(exe)
+        shown = os.path.relpath(exe) if exe.resolve().is_relative_to(Path.cwd().resolve()) else str(exe)
     except (OSError, ValueError):
-        return str(exe)
+        shown = str(exe)
+    return shlex.quote(shown if os.sep in shown else os.path.join(".", shown))   # (a bare name is a PATH lookup)
 
 
 def format_pipeline_summary(s: dict) -> str:
@@ -160,5 +162,5 @@ def format_pipeline_summary(s: dict) -> str:
     lines.append("  files:")
     lines += [f"    {k:<10} {' '.join(paths)}" for k, paths in s.get("files", {}).items()]
     if "rerun" in s.get("files", {}):
-        lines.append(f"  view it:  {rerun_command()} {' '.join(s['files']['rerun'])}")
+        lines.append(f"  view it:  {rerun_command()} {' '.join(shlex.quote(f) for f in s['files']['rerun'])}")
     return "\n".join(lines)

@@ -9,7 +9,8 @@ A launch file (TOML, see ``deploy/launch/``) lists services in start order::
     report = "pipeline"             # optional: print the pipeline summary (deploy/report.py) at the end
     [[service]]
     name = "recorder"
-    module = "services.recorder"    # started as: python -m <module> <args> <bus flags>
+    module = "services.recorder"    # started as: python -P -m <module> <args> <bus flags>, in the folder
+                                    # `flyslam run` was started from (relative paths mean what the user typed)
     args = ["--out", "{out}/recording.mcap"]
     restart = "on-failure"          # never | on-failure | always
     max_restarts = 3                # then the service has given up
@@ -363,7 +364,7 @@ class Child:
             # a restarted service continues the run's output, a fresh one never takes an old run's.
             self.proc = subprocess.Popen(self.argv, stdout=logf, stderr=subprocess.STDOUT,
                                          env=dict(env, FLYSLAM_RESTARTS=str(self.restarts)),
-                                         preexec_fn=_die_with_parent, cwd=self.cwd)
+                                         preexec_fn=_die_with_parent, cwd=self.cwd if self.cwd.is_dir() else ROOT)
         if self.watchdog is not None:
             self.watchdog.watch(self.proc.pid)   # setpgrp in the child: its pgid is its pid
         self.state, self.started_at = "running", time.monotonic()
@@ -396,13 +397,22 @@ class Child:
         return rc
 
 
+def _invocation_folder() -> Path:
+    """The folder `flyslam run` was started from, or the repository's when that folder is gone."""
+    try:
+        return Path.cwd()
+    except OSError:
+        log.warning("the current folder no longer exists: services run in %s", ROOT)
+        return ROOT
+
+
 class Supervisor:
     def __init__(self, launch: LaunchFile, out: Path, bus_opts, duration_s: float | None):
         self.launch, self.out, self.bus_opts = launch, out, bus_opts
         # Services run where `flyslam run` was typed, so a relative path given to the launch (--var
         # recording=k00.mcap) means what the user meant; -P keeps that folder off their sys.path, so a
         # package of the user's named like one of flyslam's does not shadow it (flyslam comes from PYTHONPATH).
-        self.cwd = Path.cwd()
+        self.cwd = _invocation_folder()
         self.duration_s = launch.duration_s if duration_s is None else duration_s
         self.children: list[Child] = []
         self.failed_required: list[str] = []
@@ -695,7 +705,11 @@ def main(argv=None) -> int:
     except BusConfigError as e:
         print(f"flyslam run: {e}", file=sys.stderr)
         return 2
-    taken = services_alive(opts)
+    try:
+        taken = services_alive(opts)
+    except BusConfigError as e:
+        print(f"flyslam run: {e}", file=sys.stderr)
+        return 2
     if taken:
         print(f"flyslam run: another run's services ({', '.join(taken)}) are on this bus as robot "
               f"'{opts.robot}': stop that run, or give this one its own --hub tcp/127.0.0.1:PORT or --robot NAME",

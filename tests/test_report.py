@@ -98,11 +98,12 @@ def test_summary_counts_a_cameras_frames(tmp_path):
 
 def test_the_summarys_view_command_runs_from_wherever_the_run_was_started(tmp_path, monkeypatch):
     """`flyslam run` typed outside the repository: the 'view it' line names a rerun that exists there."""
+    import shlex
     import shutil
     from pathlib import Path
 
     (tmp_path / "run.rrd").write_bytes(b"")
     monkeypatch.chdir(tmp_path)
     line = next(x for x in format_pipeline_summary(pipeline_summary(tmp_path)).splitlines() if "view it" in x)
-    viewer = line.split()[2]
+    viewer = shlex.split(line)[2]
     assert Path(viewer).is_file() or shutil.which(viewer), line

@@ -307,7 +307,7 @@ def test_a_second_run_on_a_bus_in_use_refuses_instead_of_mixing_the_two(tmp_path
         second = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=60, env=env)
         assert second.returncode == 2, second.stdout + second.stderr
         err = second.stderr.strip()
-        assert err.count("\n") == 0 and "rig" in err and "--robot" in err and "recorder" in err, err
+        assert err.count("\n") == 0 and "rig" in err and "--robot" in err and "supervisor" in err, err
         assert not (second_out / "run.json").exists()
         other = subprocess.run(argv + ["--robot", "other"], cwd=ROOT, capture_output=True, text=True, timeout=60,
                                env=env)

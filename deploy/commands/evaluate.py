@@ -85,7 +85,8 @@ class FirstInterruptEnds:
         return self
 
     def __exit__(self, *exc):
-        signal.signal(signal.SIGINT, self._previous)
+        if self._previous is not None:          # (None: a handler not set from Python; leave it)
+            signal.signal(signal.SIGINT, self._previous)
 
 
 def parse_overrides(items: list[str]):
@@ -154,6 +155,9 @@ def main(argv=None) -> int:
                               max_frames=args.max_frames, progress=progress)
     bar.done()
     if interrupt.interrupted:
+        if result.frames == 0:
+            print("flyslam eval: interrupted before the first frame", file=sys.stderr)
+            return 130
         print(f"flyslam eval: interrupted: evaluating the first {result.frames} frames", file=sys.stderr)
     if reader.error:
         print(f"flyslam eval: warning: {args.recording}: {reader.error}; evaluated the readable part", file=sys.stderr)
