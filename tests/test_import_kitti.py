@@ -286,3 +286,37 @@ def test_real_slice_tracks_alike_when_the_calibration_keeps_the_raw_cameras_intr
     raw = run_lockstep(with_raw_K())
     ate = [evaluate(r.stamps, r.estimated, r.truth_stamps, r.truth).ate_rmse_m for r in (rectified, raw)]
     assert ate[1] == pytest.approx(ate[0], abs=0.02), ate
+
+
+def test_kitti_colour_download_is_read_when_the_grey_one_is_absent(tmp_path):
+    """KITTI's colour download has image_2/image_3 and rows P2/P3 only: read in colour, calibrated from
+    P2/P3, its truth carried from grey camera 0 (the poses' camera) to colour camera 2 beside it."""
+    from common.importers.kitti import load_kitti
+
+    root = tmp_path / "kitti"
+    _kitti(root)
+    seq = root / "sequences" / "03"
+    offset = 0.06                                            # camera 2 sits 6 cm right of camera 0
+    P2 = [FX, 0, CX, -FX * offset, 0, FX, CY, 0, 0, 0, 1, 0]
+    P3 = [FX, 0, CX, -FX * (offset + 0.5), 0, FX, CY, 0, 0, 0, 1, 0]
+    row = lambda v: " ".join(f"{x:.12e}" for x in v)  # noqa: E731
+    (seq / "calib.txt").write_text(f"P2: {row(P2)}\nP3: {row(P3)}\n")
+    for grey, colour in (("image_0", "image_2"), ("image_1", "image_3")):
+        (seq / colour).mkdir()
+        for p in sorted((seq / grey).iterdir()):
+            cv2.imwrite(str(seq / colour / p.name), cv2.cvtColor(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE),
+                                                                  cv2.COLOR_GRAY2BGR))
+            p.unlink()
+        (seq / grey).rmdir()
+    ds = load_kitti(root, sequence="03")
+    assert ds.calibration.baseline == pytest.approx(0.5) and ds.calibration.fx == FX
+    left, right = ds.load_pair(0)
+    assert left.shape == (H, W, 3) and right.shape == (H, W, 3)
+    grey_truth = _camera_poses()
+    for k in (1, N - 1):   # camera 2's motion: camera 0's seen from 6 cm to its right (optical +x)
+        c0 = np.linalg.inv(grey_truth[0]) @ grey_truth[k]
+        shift = make_transform(np.eye(3), [offset, 0.0, 0.0])
+        c2 = np.linalg.inv(shift) @ c0 @ shift
+        moved = np.linalg.inv(ds.truth_poses[0]) @ ds.truth_poses[k]
+        assert np.linalg.norm(moved[:3, 3]) == pytest.approx(np.linalg.norm(c2[:3, 3]), abs=1e-6)
+        assert np.linalg.norm(c2[:3, 3] - c0[:3, 3]) > 1e-3          # (the test can tell the two apart)

@@ -4,6 +4,10 @@ The grey cameras 0 (left) and 1 (right) are already rectified; ``calib.txt`` row
 are their 3×4 projections (baseline = (P0[0,3] − P1[0,3]) / fx). ``times.txt`` holds seconds since the
 sequence start; ``poses/NN.txt`` (sequences 00–10) the left camera's pose in the first camera's frame,
 converted to base_link in map per common.importers.base, base_link on the road under the left camera.
+
+KITTI's colour download has ``image_2``/``image_3`` instead (rows ``P2:``/``P3:``): without the grey
+pair the colour one is read, and the poses (of grey camera 0) are carried to colour camera 2, which
+sits ``K⁻¹·P2[:, 3]`` from it in the same rectified orientation.
 """
 from __future__ import annotations
 
@@ -24,8 +28,12 @@ T_BASE_CAMERA = make_transform(R_BODY_OPTICAL, [0.0, 0.0, CAMERA_HEIGHT_M])
 from common.trajectory import read_kitti
 
 
-def parse_calib(path: Path) -> dict[str, np.ndarray]:
-    """``KEY: v1 v2 ...`` rows of a KITTI calib.txt → {KEY: float array}."""
+# (left folder, right folder, left projection row, right projection row): the grey pair, else the colour one
+CAMERA_PAIRS = (("image_0", "image_1", "P0", "P1"), ("image_2", "image_3", "P2", "P3"))
+
+
+def parse_calib(path: Path, keys=("P0", "P1")) -> dict[str, np.ndarray]:
+    """``KEY: v1 v2 ...`` rows of a KITTI calib.txt → {KEY: float array}; ``keys`` must be 12-number rows."""
     rows = {}
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         if not line.strip():
@@ -37,7 +45,7 @@ def parse_calib(path: Path) -> dict[str, np.ndarray]:
             rows[key.strip()] = np.array([float(v) for v in values.split()])
         except ValueError:
             raise DatasetLayoutError(f"KITTI: {path}:{lineno}: non-numeric value") from None
-    for key in ("P0", "P1"):
+    for key in keys:
         if key not in rows or rows[key].size != 12:
             raise DatasetLayoutError(f"KITTI: {path} has no 12-number {key} row")
     return rows
@@ -86,9 +94,14 @@ def load_kitti(path, sequence: str | None = None, max_frames: int | None = None)
     else:
         seq_dir, sequence = path, path.name
         poses_file = path.parent.parent / "poses" / f"{sequence}.txt"
-    left_dir = require(seq_dir / "image_0", "KITTI")
-    right_dir = require(seq_dir / "image_1", "KITTI")
-    calib_rows = parse_calib(require(seq_dir / "calib.txt", "KITTI"))
+    left_name, right_name, P_left, P_right = next(
+        (pair for pair in CAMERA_PAIRS if (seq_dir / pair[0]).is_dir()), CAMERA_PAIRS[0])
+    if not (seq_dir / left_name).is_dir():
+        raise DatasetLayoutError(f"KITTI: {seq_dir / left_name} not found (nor the colour cameras' "
+                                 f"{seq_dir / CAMERA_PAIRS[1][0]})")
+    left_dir = require(seq_dir / left_name, "KITTI")
+    right_dir = require(seq_dir / right_name, "KITTI")
+    calib_rows = parse_calib(require(seq_dir / "calib.txt", "KITTI"), (P_left, P_right))
     stamps = parse_times(require(seq_dir / "times.txt", "KITTI"))
     lefts, rights = sorted(left_dir.glob("*.png")), sorted(right_dir.glob("*.png"))
     if not lefts:
@@ -103,13 +116,17 @@ def load_kitti(path, sequence: str | None = None, max_frames: int | None = None)
         raise DatasetLayoutError(f"KITTI: {seq_dir / 'times.txt'} has {len(stamps)} times for {len(lefts)} images")
     n = len(lefts) if max_frames is None else min(len(lefts), int(max_frames))
     first = _read_image(lefts[0])
-    calib = calibration_from_projections(calib_rows["P0"], calib_rows["P1"], first.shape[1], first.shape[0])
+    calib = calibration_from_projections(calib_rows[P_left], calib_rows[P_right], first.shape[1], first.shape[0])
     truth_stamps, truth = np.zeros(0, np.int64), np.zeros((0, 4, 4))
     notes = []
     if poses_file.is_file():
         poses = read_kitti(poses_file)
         if len(poses) != len(lefts):
             raise DatasetLayoutError(f"KITTI: {poses_file} has {len(poses)} poses for {len(lefts)} images")
+        if P_left != "P0":      # the poses are grey camera 0's; the left camera here sits beside it
+            P = calib_rows[P_left].reshape(3, 4)
+            T_cam0_left = make_transform(np.eye(3), -np.linalg.solve(P[:, :3], P[:, 3]))
+            poses = np.asarray(poses) @ T_cam0_left
         truth_stamps, truth = stamps[:n], map_poses_from_camera(poses[:n], reference=poses[0],
                                                              T_base_camera=T_BASE_CAMERA)
     else:
