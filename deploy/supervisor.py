@@ -670,7 +670,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("launch", nargs="?", default=str(DEFAULT_LAUNCH), help="launch file (TOML)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (0 = run until Ctrl-C); default: the launch file's")
-    p.add_argument("--out", default=None, help="folder for everything the run writes (default: runs/<date-time>)")
+    p.add_argument("--out", default=None, help="folder for everything the run writes (default: runs/<date-time> in the current folder)")
     p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE",
                    help="set a launch-file variable used as {NAME} in service args")
     p.add_argument("--viewer", action="store_true",
@@ -696,7 +696,8 @@ def main(argv=None) -> int:
             print(f"flyslam run: --var expects NAME=VALUE, got {item!r}", file=sys.stderr)
             return 2
         launch.vars[name] = value
-    out = Path(args.out) if args.out else ROOT / "runs" / time.strftime("%Y%m%d-%H%M%S")
+    here = _invocation_folder()
+    out = here / (args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S"))
     opts = bus_options(args)
     if launch.robot and args.robot == "rig":
         opts.robot = launch.robot

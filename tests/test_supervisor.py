@@ -258,8 +258,8 @@ if __name__ == "__main__":
 
 def test_paths_given_to_a_launch_are_relative_to_where_flyslam_run_was_started(tmp_path, zenoh_port):
     """`flyslam run deploy/launch/kitti.toml --var recording=k00.mcap`, typed in the folder that holds
-    k00.mcap: the services resolve it there, not in the repository.  A package of the user's folder named
-    like one of flyslam's (common/) does not shadow it."""
+    k00.mcap: the services resolve it there, not in the repository, and the run's folder (runs/<date>)
+    is made there.  A package of the user's folder named like one of flyslam's (common/) does not shadow it."""
     work = tmp_path / "work"
     (work / "common").mkdir(parents=True)
     (work / "common" / "__init__.py").write_text("raise ImportError('the user folder shadowed flyslam')\n")
@@ -282,11 +282,12 @@ source = "nowhere.mcap"
 """
     (work / "launch.toml").write_text(launch)
     # -P: as the installed `flyslam` script, which does not put the current folder on sys.path either
-    done = subprocess.run([sys.executable, "-P", "-m", "deploy.cli", "run", "launch.toml", "--out", "run", "--var",
+    done = subprocess.run([sys.executable, "-P", "-m", "deploy.cli", "run", "launch.toml", "--var",
                            "source=source.mcap", "--hub", hub(zenoh_port), "--duration", "60"], cwd=work,
                           capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert done.returncode == 0, done.stdout + done.stderr
-    frames = sum(1 for _ in RecordingReader(work / "run" / "recording.mcap").messages())
+    (run,) = (work / "runs").iterdir()          # the default run folder is in the user's folder too
+    frames = sum(1 for _ in RecordingReader(run / "recording.mcap").messages())
     assert frames >= 15, done.stdout
 
 
