@@ -320,3 +320,26 @@ def test_kitti_colour_download_is_read_when_the_grey_one_is_absent(tmp_path):
         moved = np.linalg.inv(ds.truth_poses[0]) @ ds.truth_poses[k]
         assert np.linalg.norm(moved[:3, 3]) == pytest.approx(np.linalg.norm(c2[:3, 3]), abs=1e-6)
         assert np.linalg.norm(c2[:3, 3] - c0[:3, 3]) > 1e-3          # (the test can tell the two apart)
+
+
+def test_an_interrupted_import_leaves_no_recording_that_passes_for_the_whole_sequence(real_root, tmp_path):
+    """Ctrl-C half-way through the real clip: exit 130 and no k.mcap (it held the first frames, finalised,
+    and looked like the whole sequence)."""
+    import signal
+    import subprocess
+    import sys
+
+    from tests.helpers import ROOT
+
+    out = tmp_path / "k.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "import", "kitti", str(real_root), "--sequence", "00",
+                             "--out", str(out)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    for line in proc.stdout:
+        if line.startswith("frames ") and int(line.split()[1].split("/")[0]) >= 5:
+            proc.send_signal(signal.SIGINT)
+            break
+    text, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, text
+    assert "interrupted" in text and not out.exists()

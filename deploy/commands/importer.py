@@ -126,6 +126,10 @@ def main(argv: list[str] | None = None) -> int:
         out.unlink(missing_ok=True)  # no half-written recording that looks complete
         print(f"flyslam import: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:        # the same: a cut import would pass for the whole sequence
+        out.unlink(missing_ok=True)
+        print(f"flyslam import: interrupted; {out} not written", file=sys.stderr)
+        return 130
     print(summary.format())
     return 0
 
