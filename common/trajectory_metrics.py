@@ -34,6 +34,12 @@ class TrajectoryMetrics:
         return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
+def path_length(positions) -> float:
+    """Length (m) of the polyline through (N, 3) positions."""
+    p = np.asarray(positions, dtype=float).reshape(-1, 3)
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
 def associate(stamps_a, stamps_b, tolerance_ns: int = 20_000_000):
     """Index pairs (i, j) of a's and b's stamps closer than the tolerance (each a-stamp at most once)."""
     a = np.asarray(stamps_a, np.int64)
@@ -73,7 +79,7 @@ def evaluate(est_stamps, est_poses, gt_stamps, gt_poses, tolerance_ns: int = 20_
     E = np.asarray(est_poses)[i]
     G = np.asarray(gt_poses)[j]
     pe, pg = E[:, :3, 3], G[:, :3, 3]
-    path = float(np.sum(np.linalg.norm(np.diff(pg, axis=0), axis=1)))
+    path = path_length(pg)
     A = umeyama(pe, pg)
     aligned = pe @ A[:3, :3].T + A[:3, 3]
     ate = float(np.sqrt(np.mean(np.sum((aligned - pg) ** 2, axis=1))))

@@ -19,7 +19,7 @@ import numpy as np
 from common import messages as m
 from common.recording import RecordingError, RecordingReader, segments_of
 from common.trajectory import TrajectoryFormatError, read_tum
-from common.trajectory_metrics import TrajectoryMismatch, associate, evaluate
+from common.trajectory_metrics import TrajectoryMismatch, associate, evaluate, path_length
 
 
 def _last_command(recording: Path) -> tuple[m.VelocityCommand | None, int, m.Target | None]:
@@ -96,7 +96,7 @@ def pipeline_summary(out: Path) -> dict:
         try:
             es, ep = read_tum(est_path)
             summary["estimated_poses"] = len(es)
-            summary["estimated_path_m"] = round(float(np.linalg.norm(np.diff(ep[:, :3, 3], axis=0), axis=1).sum()), 2)
+            summary["estimated_path_m"] = round(path_length(ep[:, :3, 3]), 2)
         except (TrajectoryFormatError, ValueError) as e:
             summary["ate_error"] += f"; {est_path.name}: {e}"
     else:

@@ -407,12 +407,12 @@ def _invocation_folder() -> Path:
 
 
 class Supervisor:
-    def __init__(self, launch: LaunchFile, out: Path, bus_opts, duration_s: float | None):
+    def __init__(self, launch: LaunchFile, out: Path, bus_opts, duration_s: float | None, cwd: Path | None = None):
         self.launch, self.out, self.bus_opts = launch, out, bus_opts
         # Services run where `flyslam run` was typed, so a relative path given to the launch (--var
         # recording=k00.mcap) means what the user meant; -P keeps that folder off their sys.path, so a
         # package of the user's named like one of flyslam's does not shadow it (flyslam comes from PYTHONPATH).
-        self.cwd = _invocation_folder()
+        self.cwd = cwd if cwd is not None else _invocation_folder()
         self.duration_s = launch.duration_s if duration_s is None else duration_s
         self.children: list[Child] = []
         self.failed_required: list[str] = []
@@ -716,7 +716,7 @@ def main(argv=None) -> int:
               f"'{opts.robot}': stop that run, or give this one its own --hub tcp/127.0.0.1:PORT or --robot NAME",
               file=sys.stderr)
         return 2
-    sup = Supervisor(launch, out.resolve(), opts, args.duration)
+    sup = Supervisor(launch, out.resolve(), opts, args.duration, cwd=here)
     try:
         sup.prepare()
     except LaunchError as e:

@@ -24,7 +24,7 @@ from common.fly import EvolverConfig
 from common.lockstep import run_lockstep
 from common.recording import RecordingError, RecordingReader
 from common.trajectory import write_tum
-from common.trajectory_metrics import TrajectoryMismatch, evaluate, factor_nees
+from common.trajectory_metrics import TrajectoryMismatch, evaluate, factor_nees, path_length
 from deploy.progress import Progress
 
 
@@ -201,8 +201,8 @@ def main(argv=None) -> int:
                 backend.graph.edges().values(), {k: kf.stamp_ns for k, kf in backend.archive.items()},
                 result.truth_stamps, result.truth, planar=backend.planar)
     else:     # a user's own camera: no truth to score, but the estimate is still worth a look
-        steps = np.diff(np.asarray(final_poses)[:, :3, 3], axis=0) if len(final_poses) else np.zeros((0, 3))
-        metrics["estimated"] = {"poses": len(final_stamps), "path_length_m": round(float(np.linalg.norm(steps, axis=1).sum()), 3)}
+        positions = np.asarray(final_poses).reshape(-1, 4, 4)[:, :3, 3]
+        metrics["estimated"] = {"poses": len(final_stamps), "path_length_m": round(path_length(positions), 3)}
     if len(final_stamps) > 1:
         plot(out / "trajectories.png", result, odom_in_map, final_stamps, final_poses)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
