@@ -3,8 +3,9 @@
 Subscribes ``odom/wheels`` (every message), ``slam/pose`` and ``slam/map_to_odom`` (corrections; a
 map→odom without a matching pose is fused with ``--map-to-odom-sigma``) and ``sonar/scan`` (in base_link
 or in ``--sonar-frame`` mounted at ``--sonar-mount``). Publishes ``fusion/odom`` (base_link in odom) and
-``fusion/pose`` (base_link in map), both latched, per odometry reading, with status 'ok', 'odometry
-only' or 'flagged: <why>'; ``fusion/sonar`` (the scan in base_link) and ``fusion/sonar_points`` (echo
+``fusion/pose`` (base_link in map), both latched, at most ``--publish-hz`` a second (the newest reading's
+state; a status change at once: :mod:`common.fusion.output_rate`), with status 'ok', 'odometry only' or
+'flagged: <why>'; ``fusion/sonar`` (the scan in base_link) and ``fusion/sonar_points`` (echo
 points in base_link for the planner, ``--arc-samples`` per echo, fitness 1, source_seq = the scan's seq).
 
 On start it continues from the latched ``fusion/odom``/``fusion/pose`` found on the bus (kept by a
@@ -16,6 +17,7 @@ from __future__ import annotations
 import logging
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,6 +27,7 @@ from common import streams as S
 from common.config_args import add_config_arguments
 from common.fusion.core import FusionCore
 from common.fusion.odometry import OdometryModel
+from common.fusion.output_rate import OutputRate
 from common.fusion.pose_filter import FilterConfig
 from common.fusion.sonar import SonarScanError, echo_points, scan_in_base
 from services.base import config_or_exit, run_service, service_parser
@@ -46,6 +49,13 @@ class FusionServiceConfig:
     arc_samples: int = field(default=5, metadata={"help": "obstacle points per sonar echo"})
     recover_timeout: float = field(default=1.0, metadata={
         "help": "seconds to wait for the latched fusion/odom and fusion/pose at start"})
+    publish_hz: float = field(default=30.0, metadata={
+        "help": "publish fusion/odom and fusion/pose at most this often, by the readings' stamps (0: every "
+                "reading); a status change goes out at once"})
+
+    def __post_init__(self):
+        if not self.publish_hz >= 0:
+            raise ValueError(f"publish_hz must be >= 0 (0: every reading), got {self.publish_hz}")
 
 
 def build_parser():
@@ -84,7 +94,8 @@ def recover(node, core: FusionCore, timeout: float) -> None:
 
 
 class FusionHandlers:
-    """The subscriptions' callbacks: FusionCore under one lock, its outputs published, problems counted."""
+    """The subscriptions' callbacks: FusionCore under one lock, its outputs published (paced by
+    ``--publish-hz``), problems counted."""
 
     def __init__(self, node, core: FusionCore, run: FusionServiceConfig):
         self.node, self.core, self.run = node, core, run
@@ -92,13 +103,32 @@ class FusionHandlers:
         self.pubs = {s: node.publisher(s) for s in (S.FUSION_ODOM, S.FUSION_POSE, S.FUSION_SONAR,
                                                      S.FUSION_SONAR_POINTS)}
         self._slam_correction = self.correction(core.on_slam_pose, "slam_pose")
+        self.rate = OutputRate(run.publish_hz)
+        self._held: tuple[m.PoseEstimate, m.PoseEstimate] | None = None
+
+    def _output(self, odom: m.PoseEstimate, pose: m.PoseEstimate) -> None:
+        """Publish the (fusion/odom, fusion/pose) pair now, or hold it as the newest until it is due."""
+        if self.rate.due(odom.header.stamp_ns, f"{odom.status}|{pose.status}", time.monotonic()):
+            self._held = None
+            self.pubs[S.FUSION_ODOM].publish(odom)
+            self.pubs[S.FUSION_POSE].publish(pose)
+        else:
+            self._held = (odom, pose)
+
+    def flush_overdue(self) -> None:
+        """Publish the held pair once it has waited a period (the readings stopped or slowed)."""
+        with self.lock:
+            if self._held is not None and self.rate.overdue(time.monotonic()):
+                odom, pose = self._held
+                self._held = None
+                self.pubs[S.FUSION_ODOM].publish(odom)
+                self.pubs[S.FUSION_POSE].publish(pose)
 
     def on_wheels(self, msg: m.WheelOdometry) -> None:
         with self.lock:
             odom, pose = self.core.on_odometry(msg)
             step = self.core.last_step
-            self.pubs[S.FUSION_ODOM].publish(odom)
-            self.pubs[S.FUSION_POSE].publish(pose)
+            self._output(odom, pose)
         if step.ok:
             self.node.progress += 1
             if step.note.startswith("resynchronised"):
@@ -124,8 +154,7 @@ class FusionHandlers:
         with self.lock:
             visual = self.core.visual_odometry(msg)
             if visual is not None:
-                self.pubs[S.FUSION_ODOM].publish(visual[0])
-                self.pubs[S.FUSION_POSE].publish(visual[1])
+                self._output(*visual)
         if visual is not None:
             self.node.progress += 1
             return
@@ -152,8 +181,8 @@ def body(node, args) -> int:
     node.subscribe(S.SLAM_POSE, callback=handlers.on_slam_pose)
     node.subscribe(S.SLAM_MAP_TO_ODOM, callback=handlers.correction(core.on_map_to_odom, "map_to_odom"))
     node.subscribe(S.SONAR_SCAN, callback=handlers.on_sonar)
-    while node.sleep(0.5):
-        pass
+    while node.sleep(1.0 / run.publish_hz if run.publish_hz > 0 else 0.5):
+        handlers.flush_overdue()
     return 0
 
 

@@ -107,8 +107,11 @@ def test_flags_corrections_and_sonar_through_the_service(zenoh_port, tmp_path):
         proc = start_module("services.fusion", port=zenoh_port, log_path=tmp_path / "fusion.log")
         try:
             wheels.until_answered(odom)
+            first = wheels.i + 1
             good = answered(odom, wheels.drive(50))
             assert good.status == "ok" and good.position[0] == pytest.approx(0.5, abs=1e-3)
+            # One second of 50 Hz readings comes out at --publish-hz (30), the newest one included.
+            assert 28 <= len([o for o in odom.items if o.source_seq >= first]) <= 32
             assert answered(pose, good.source_seq).status == "odometry only"
 
             # A NaN, an out-of-order reading and an encoder jump: flagged, the pose does not move.
