@@ -19,7 +19,9 @@ Figures (no pass/fail; noisy on a shared machine):
   back-to-back SGBM time): the shared accuracy measure
   (common.fly.metrics) from random initialisation; the clock starts before set_images (per-frame
   preprocessing included) and is paused while the measure itself is computed.  The flies search the
-  same disparity range as SGBM (0…64 px, i.e. depths 2.02…6.18 m); default EvolverConfig otherwise;
+  same disparity range as SGBM (0…64 px, i.e. depths 2.02…6.18 m); default EvolverConfig otherwise.
+  The process keeps freed memory for reuse as the services do (common.allocator), so a frame's arrays
+  cost no page faults, as in the evolver service;
 - scaling: fly_evals_per_s for 20,000 and 100,000 flies.
 
 Usage: python bench/evolver.py [--json] [--seconds 3]
@@ -40,6 +42,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from common.allocator import retain_freed_memory  # noqa: E402
 from common.camera import StereoCalibration  # noqa: E402
 from common.fly import EvolverConfig, FlyEvolver, inlier_fraction  # noqa: E402
 from common.fly.fitness import image_fitness  # noqa: E402
@@ -160,6 +163,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=3.0, help="length of the accuracy-vs-time run")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    retain_freed_memory()   # the evolver as its service runs it (services.base): no page faults per frame
 
     load0 = os.getloadavg()[0]
     pair = load_motorcycle()
