@@ -63,14 +63,16 @@ def calibration_format(path) -> str:
     return "opencv"
 
 
-def load_rig(paths, units_m: float | None = None) -> CalibratedRig:
-    """The rig the calibration file(s) ``paths`` describe (see the module doc for the formats)."""
+def load_rig(paths, units_m: float | None = None,
+             image_size: Callable[[], tuple[int, int]] | None = None) -> CalibratedRig:
+    """The rig the calibration file(s) ``paths`` describe (see the module doc for the formats).
+    ``image_size``: the raw frames' (width, height), asked for only when an OpenCV YAML holds no size."""
     paths = [Path(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths)]
     if not paths:
         raise CalibrationError("no calibration file given")
     kind = calibration_format(paths[0])
     if kind == "opencv":
-        calib = load_calibration(paths, units_m)
+        calib = load_calibration(paths, units_m, image_size)
         return CalibratedRig(calib, StereoRectifier(calib).rectify, "OpenCV stereo YAML")
     names = ", ".join(str(p) for p in paths)
     if units_m is not None:

@@ -32,6 +32,7 @@ they are recomputed, so the file cannot disagree with itself.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -217,8 +218,24 @@ def read_node(node: cv2.FileNode, where: str) -> np.ndarray:
     raise CalibrationError(f"{where} is not numeric")
 
 
-def load_stereo_yaml(paths, units_m: float | None = None) -> RawStereoRig:
-    """Read a raw rig from one or more OpenCV YAML/XML files (merged in order; see module doc)."""
+def _check_principal_points(nodes: dict, width: float, height: float, where: str) -> None:
+    """A size taken from the frames must fit the intrinsics: each principal point inside the image (a
+    calibration made at another resolution has it elsewhere, and every depth would be wrong)."""
+    for name in ("M1", "K1", "M2", "K2"):
+        if name in nodes and nodes[name][0].size == 9:
+            K = nodes[name][0].reshape(3, 3)
+            cx, cy = float(K[0, 2]), float(K[1, 2])
+            if not (0.1 * width < cx < 0.9 * width and 0.1 * height < cy < 0.9 * height):
+                raise CalibrationError(f"{where}: {name}'s principal point ({cx:.0f}, {cy:.0f}) does not fit the "
+                                       f"camera's {width:.0f}×{height:.0f} frames: the calibration is for another "
+                                       "resolution (or add image_width and image_height nodes)")
+
+
+def load_stereo_yaml(paths, units_m: float | None = None,
+                     image_size: Callable[[], tuple[int, int]] | None = None) -> RawStereoRig:
+    """Read a raw rig from one or more OpenCV YAML/XML files (merged in order; see module doc).
+    ``image_size``: asked for the raw (width, height) when the files hold none (OpenCV's ``stereo_calib``
+    sample writes none): a camera knows the size of its own frames."""
     paths = [Path(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths)]
     nodes: dict[str, tuple[np.ndarray, Path]] = {}
     for path in paths:
@@ -245,13 +262,18 @@ def load_stereo_yaml(paths, units_m: float | None = None) -> RawStereoRig:
         width, height = float(nodes["image_width"][0]), float(nodes["image_height"][0])
     else:
         size = next((nodes[k][0] for k in ("image_size", "size", "imageSize") if k in nodes), None)
-        if size is None or size.size != 2:
+        if size is not None and size.size == 2:
+            width, height = size.ravel()
+        elif image_size is not None:
+            width, height = image_size()
+            _check_principal_points(nodes, width, height, where)
+        else:
             raise CalibrationError(f"{where}: no image size (add image_width and image_height nodes)")
-        width, height = size.ravel()
     if units_m is None:
         if "units_m" not in nodes:
             raise CalibrationError(f"{where}: the unit of T is unknown — no units_m node; pass --units-m "
-                                   "(metres per unit of T: the square size if T is in squares, 1 if in metres)")
+                                   "(metres per unit of T: the square size if T is in squares, 1 if in metres; "
+                                   "--var units_m=... with a launch file)")
         units_m = float(nodes["units_m"][0])
     if not np.isfinite(units_m) or units_m <= 0:
         raise CalibrationError(f"units_m must be a positive number, got {units_m}")
@@ -297,10 +319,11 @@ def save_stereo_yaml(path, rig: RawStereoRig, info: dict | None = None) -> None:
     fs.release()
 
 
-def load_calibration(paths, units_m: float | None = None) -> StereoCalibration:
+def load_calibration(paths, units_m: float | None = None,
+                     image_size: Callable[[], tuple[int, int]] | None = None) -> StereoCalibration:
     """Rectified calibration from YAML file(s): :func:`load_stereo_yaml` then :func:`rectify_rig`;
     a CalibrationError names the file(s)."""
-    rig = load_stereo_yaml(paths, units_m)
+    rig = load_stereo_yaml(paths, units_m, image_size)
     try:
         return rectify_rig(rig)
     except CalibrationError as e:

@@ -87,6 +87,27 @@ def open_capture(spec: str, size: tuple[int, int] | None = None, fps: float | No
     return cap
 
 
+def source_frame_size(left: str | None, right: str | None, sbs: str | None) -> tuple[int, int]:
+    """(width, height) of one camera's raw frames, read from the source's first frame (a side-by-side
+    frame holds two): for a calibration file that does not say (OpenCV's stereo_calib sample)."""
+    spec = sbs or left
+    if spec is None or (sbs is None and right is None):
+        raise CameraError("give either --sbs, or both --left and --right")
+    cap = open_capture(spec)
+    try:
+        try:
+            ok, img = cap.retrieve() if cap.grab() else (False, None)
+        except ImageSequenceError as e:
+            raise CameraError(str(e)) from None
+        if not ok or img is None:
+            raise CameraError(f"{describe(spec)} gave no frame")
+    finally:
+        cap.release()
+    width = img.shape[1] // 2 if sbs else img.shape[1]
+    log.info("the calibration gives no image size: %s gives %dx%d frames", describe(spec), width, img.shape[0])
+    return width, img.shape[0]
+
+
 class StereoCapture:
     """Raw (unrectified) BGR stereo pairs from two captures or one side-by-side capture.
 
@@ -217,8 +238,9 @@ def build_parser():
     src.add_argument("--calibration", "-c", action="append", required=True,
                      help="OpenCV stereo YAML (repeatable), Kalibr camchain.yaml, or ROS camera_info left.yaml "
                           "then right.yaml")
-    src.add_argument("--units-m", type=float, default=None,
-                     help="metres per unit of T in an OpenCV YAML (overrides its units_m node)")
+    src.add_argument("--units-m", type=_optional_float, default=None,
+                     help="metres per unit of T in an OpenCV YAML (overrides its units_m node; OpenCV's "
+                          "stereo_calib sample writes T in chessboard squares: give the square size)")
     src.add_argument("--fps", type=_optional_float, default=None,
                      help="frame rate to publish at (needed for images); unset: a video's own rate, a device's pace")
     src.add_argument("--loop", action="store_true", help="rewind video files at their end")
@@ -292,11 +314,12 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging("camera")
     try:
         calibration_files = [c for c in args.calibration if c]
-        rig = load_rig(calibration_files, args.units_m)
+        left, right, sbs = args.left or None, args.right or None, args.sbs or None
+        rig = load_rig(calibration_files, args.units_m, image_size=lambda: source_frame_size(left, right, sbs))
         calib = rig.calibration
         pipeline = StereoPipeline(rig, args.encoding, args.quality)
         # an empty value is no value: a launch file passes every source option, the unused ones empty
-        capture = StereoCapture(calib, args.left or None, args.right or None, args.sbs or None, loop=args.loop,
+        capture = StereoCapture(calib, left, right, sbs, loop=args.loop,
                                 calibration_name=f"calibration {', '.join(calibration_files)}", fps=args.fps)
         if capture.is_sequence and not args.fps:
             capture.close()

@@ -65,10 +65,11 @@ def _write_video(path, frames_rgb):
     w.release()
 
 
-def _write_opencv_yaml(path, rig: RawStereoRig, width=W, height=H, t_scale=100.0, units=True):
+def _write_opencv_yaml(path, rig: RawStereoRig, width=W, height=H, t_scale=100.0, units=True, size=True):
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    fs.write("image_width", width)
-    fs.write("image_height", height)
+    if size:
+        fs.write("image_width", width)
+        fs.write("image_height", height)
     for name, value in (("M1", rig.K1), ("D1", rig.D1.reshape(1, -1)), ("M2", rig.K2),
                         ("D2", rig.D2.reshape(1, -1)), ("R", rig.R), ("T", rig.T.reshape(3, 1) * t_scale)):
         fs.write(name, value)
@@ -164,6 +165,26 @@ def test_missing_file_and_unknown_units_are_clear_errors(videos, tmp_path, capsy
     # with --units-m the same file is accepted (T was written in centimetres)
     calib = load_calibration(tmp_path / "squares.yaml", units_m=0.01)
     assert calib.baseline == pytest.approx(np.linalg.norm(rig.T), rel=1e-3)
+
+
+def test_a_calibration_without_image_size_takes_it_from_the_camera(videos, tmp_path, capsys):
+    # OpenCV's stereo_calib sample writes no image size: the source's frames give it
+    d, rig, truth = videos
+    _write_opencv_yaml(tmp_path / "sample.yml", rig, size=False, units=False)
+    src = dict(left=str(d / "left.avi"), right=str(d / "right.avi"), sbs=None)
+    calib = load_rig([tmp_path / "sample.yml"], units_m=0.01,
+                     image_size=lambda: camera.source_frame_size(**src)).calibration
+    assert (calib.width, calib.height) == (W, H)
+    _assert_plays_the_truth(camera.StereoCapture(calib, **src), camera.StereoPipeline(calib, "rgb8"), truth)
+    sbs = load_rig([tmp_path / "sample.yml"], units_m=0.01,
+                   image_size=lambda: camera.source_frame_size(None, None, str(d / "sbs.avi"))).calibration
+    assert (sbs.width, sbs.height) == (W, H)
+    # a calibration made at twice the resolution does not fit these frames: said, not used
+    big = RawStereoRig(width=2 * W, height=2 * H, K1=rig.K1 * [[2], [2], [1]], D1=rig.D1, K2=rig.K2 * [[2], [2], [1]],
+                       D2=rig.D2, R=rig.R, T=rig.T)
+    _write_opencv_yaml(tmp_path / "big.yml", big, size=False)
+    code, err = _run_main(capsys, ["--left", src["left"], "--right", src["right"], "-c", str(tmp_path / "big.yml")])
+    assert code == 2 and "principal point" in err and f"{W}×{H}" in err and "Traceback" not in err
 
 
 def _assert_plays_the_truth(capture, pipeline, truth):
