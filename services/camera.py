@@ -239,8 +239,7 @@ def build_parser():
                      help="OpenCV stereo YAML (repeatable), Kalibr camchain.yaml, or ROS camera_info left.yaml "
                           "then right.yaml")
     src.add_argument("--units-m", type=_optional_float, default=None,
-                     help="metres per unit of T in an OpenCV YAML (overrides its units_m node; OpenCV's "
-                          "stereo_calib sample writes T in chessboard squares: give the square size)")
+                     help="metres per unit of T in an OpenCV YAML (overrides units_m; T in squares: the square size)")
     src.add_argument("--fps", type=_optional_float, default=None,
                      help="frame rate to publish at (needed for images); unset: a video's own rate, a device's pace")
     src.add_argument("--loop", action="store_true", help="rewind video files at their end")

@@ -50,8 +50,7 @@ class FusionServiceConfig:
     recover_timeout: float = field(default=1.0, metadata={
         "help": "seconds to wait for the latched fusion/odom and fusion/pose at start"})
     publish_hz: float = field(default=30.0, metadata={
-        "help": "publish fusion/odom and fusion/pose at most this often, by the readings' stamps (0: every "
-                "reading); a status change goes out at once"})
+        "help": "fusion/odom and fusion/pose at most this often (Hz of reading stamps; 0: every reading)"})
 
     def __post_init__(self):
         if not self.publish_hz >= 0:
