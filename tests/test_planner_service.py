@@ -2,7 +2,11 @@
 and the live service steers towards its target from the bus's inputs."""
 from __future__ import annotations
 
+import ast
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -219,3 +223,34 @@ def test_new_view_settings_must_be_positive():
         PlannerServiceConfig(new_view_s=0.0)
     with pytest.raises(ValueError, match="view_cell_cap"):
         PlannerServiceConfig(view_cell_cap=float("nan"))
+
+
+KERNELS_LOADED_BY_CYCLES = """
+import sys
+from common.planning import PlannerConfig
+from common.planning.core import warm_up
+from common.warmup import kernel_modules, kernels
+from tests.test_planner_service import _core, _heading_after, _wall_population
+found = kernels([name for name in kernel_modules() if name.startswith("common.planning")])
+if sys.argv[1] == "warm":
+    warm_up(PlannerConfig())
+before = {k: len(d.signatures) for k, d in found.items()}
+core = _core()
+_heading_after(core)                                  # a solved field, then a wall cuts cells out of it
+for seq in range(1, 4):
+    core.on_population(_wall_population(0.5, seq, camera_x=0.1 * seq))
+_heading_after(core)
+core.cycle(10**9)
+print(sorted(k for k, d in found.items() if len(d.signatures) > before[k]))
+"""
+
+
+@pytest.mark.parametrize("warm", ["warm", "cold"])
+def test_the_warm_up_leaves_no_kernel_for_the_planners_cycles_to_load(warm):
+    # A fresh process, as the service is: numba loads each kernel from its cache on first use, and in a
+    # run that first use was the first cycles with a population (half a second of CPU while frames flow).
+    out = subprocess.run([sys.executable, "-c", KERNELS_LOADED_BY_CYCLES, warm], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parent.parent, timeout=300)
+    assert out.returncode == 0, out.stderr
+    loaded = ast.literal_eval(out.stdout.strip().splitlines()[-1])
+    assert (loaded == []) == (warm == "warm"), loaded
