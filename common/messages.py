@@ -120,7 +120,7 @@ class WheelOdometry(Message):
         for name in ("ticks_per_rev", "wheel_radius_m", "track_width_m"):
             check_range(name, getattr(self, name), 0.0, MAX_WORLD_M)
         # A non-finite wheel speed is let through: the odometry model flags it and republishes the held
-        # pose (fusion/odom answers every reading), so it cannot reach the fused state.
+        # pose (fusion/odom says 'flagged'), so it cannot reach the fused state.
         if self.wheel_speeds is not None and np.any(np.abs(self.wheel_speeds) > MAX_WORLD_M):
             raise InvalidValue(f"wheel_speeds beyond ±{MAX_WORLD_M:g}")
         if self.pose_xyyaw is not None:

@@ -219,13 +219,14 @@ def read_node(node: cv2.FileNode, where: str) -> np.ndarray:
 
 
 def _check_principal_points(nodes: dict, width: float, height: float, where: str) -> None:
-    """A size taken from the frames must fit the intrinsics: each principal point inside the image (a
-    calibration made at another resolution has it elsewhere, and every depth would be wrong)."""
+    """A size taken from the frames must fit the intrinsics: each principal point within 20 % of the
+    image's size from its centre (a calibration made at half or twice the resolution has it a quarter of
+    the image away or beyond, and every depth would be wrong)."""
     for name in ("M1", "K1", "M2", "K2"):
         if name in nodes and nodes[name][0].size == 9:
             K = nodes[name][0].reshape(3, 3)
             cx, cy = float(K[0, 2]), float(K[1, 2])
-            if not (0.1 * width < cx < 0.9 * width and 0.1 * height < cy < 0.9 * height):
+            if not (abs(cx - width / 2) < 0.2 * width and abs(cy - height / 2) < 0.2 * height):
                 raise CalibrationError(f"{where}: {name}'s principal point ({cx:.0f}, {cy:.0f}) does not fit the "
                                        f"camera's {width:.0f}×{height:.0f} frames: the calibration is for another "
                                        "resolution (or add image_width and image_height nodes)")

@@ -4,7 +4,7 @@ Subscribes ``odom/wheels`` (every message), ``slam/pose`` and ``slam/map_to_odom
 map→odom without a matching pose is fused with ``--map-to-odom-sigma``) and ``sonar/scan`` (in base_link
 or in ``--sonar-frame`` mounted at ``--sonar-mount``). Publishes ``fusion/odom`` (base_link in odom) and
 ``fusion/pose`` (base_link in map), both latched, at most ``--publish-hz`` a second (the newest reading's
-state; a status change at once: :mod:`common.fusion.output_rate`), with status 'ok', 'odometry only' or
+state; a change of status kind at once: :mod:`common.fusion.output_rate`), with status 'ok', 'odometry only' or
 'flagged: <why>'; ``fusion/sonar`` (the scan in base_link) and ``fusion/sonar_points`` (echo
 points in base_link for the planner, ``--arc-samples`` per echo, fitness 1, source_seq = the scan's seq).
 
@@ -53,8 +53,9 @@ class FusionServiceConfig:
         "help": "fusion/odom and fusion/pose at most this often (Hz of reading stamps; 0: every reading)"})
 
     def __post_init__(self):
-        if not self.publish_hz >= 0:
-            raise ValueError(f"publish_hz must be >= 0 (0: every reading), got {self.publish_hz}")
+        if not (self.publish_hz == 0 or 0.1 <= self.publish_hz < float("inf")):
+            raise ValueError(f"publish_hz must be 0 (every reading) or a finite rate of at least 0.1 Hz, got "
+                             f"{self.publish_hz}")
 
 
 def build_parser():
@@ -107,17 +108,18 @@ class FusionHandlers:
 
     def _output(self, odom: m.PoseEstimate, pose: m.PoseEstimate) -> None:
         """Publish the (fusion/odom, fusion/pose) pair now, or hold it as the newest until it is due."""
-        if self.rate.due(odom.header.stamp_ns, f"{odom.status}|{pose.status}", time.monotonic()):
+        if self.rate.due(odom.header.stamp_ns, (odom.status, pose.status), time.monotonic()):
             self._held = None
             self.pubs[S.FUSION_ODOM].publish(odom)
             self.pubs[S.FUSION_POSE].publish(pose)
         else:
             self._held = (odom, pose)
 
-    def flush_overdue(self) -> None:
-        """Publish the held pair once it has waited a period (the readings stopped or slowed)."""
+    def flush_overdue(self, stopping: bool = False) -> None:
+        """Publish the held pair once it has waited a period (the readings stopped or slowed), or at once
+        when the service stops (the latched outputs then hold the newest state)."""
         with self.lock:
-            if self._held is not None and self.rate.overdue(time.monotonic()):
+            if self._held is not None and (self.rate.overdue(time.monotonic()) or stopping):
                 odom, pose = self._held
                 self._held = None
                 self.pubs[S.FUSION_ODOM].publish(odom)
@@ -152,8 +154,9 @@ class FusionHandlers:
         """Without wheels: the localiser's estimate is republished as odometry; else fused as a correction."""
         with self.lock:
             visual = self.core.visual_odometry(msg)
-            if visual is not None:
-                self._output(*visual)
+            if visual is not None:      # at the camera's rate already: not paced (camera stamps jitter)
+                self.pubs[S.FUSION_ODOM].publish(visual[0])
+                self.pubs[S.FUSION_POSE].publish(visual[1])
         if visual is not None:
             self.node.progress += 1
             return
@@ -180,8 +183,9 @@ def body(node, args) -> int:
     node.subscribe(S.SLAM_POSE, callback=handlers.on_slam_pose)
     node.subscribe(S.SLAM_MAP_TO_ODOM, callback=handlers.correction(core.on_map_to_odom, "map_to_odom"))
     node.subscribe(S.SONAR_SCAN, callback=handlers.on_sonar)
-    while node.sleep(1.0 / run.publish_hz if run.publish_hz > 0 else 0.5):
+    while node.sleep(min(max(1.0 / run.publish_hz, 0.01), 0.5) if run.publish_hz > 0 else 0.5):
         handlers.flush_overdue()
+    handlers.flush_overdue(stopping=True)
     return 0
 
 

@@ -182,9 +182,12 @@ def test_a_calibration_without_image_size_takes_it_from_the_camera(videos, tmp_p
     # a calibration made at twice the resolution does not fit these frames: said, not used
     big = RawStereoRig(width=2 * W, height=2 * H, K1=rig.K1 * [[2], [2], [1]], D1=rig.D1, K2=rig.K2 * [[2], [2], [1]],
                        D2=rig.D2, R=rig.R, T=rig.T)
-    _write_opencv_yaml(tmp_path / "big.yml", big, size=False)
-    code, err = _run_main(capsys, ["--left", src["left"], "--right", src["right"], "-c", str(tmp_path / "big.yml")])
-    assert code == 2 and "principal point" in err and f"{W}×{H}" in err and "Traceback" not in err
+    small = RawStereoRig(width=W // 2, height=H // 2, K1=rig.K1 * [[0.5], [0.5], [1]], D1=rig.D1,
+                         K2=rig.K2 * [[0.5], [0.5], [1]], D2=rig.D2, R=rig.R, T=rig.T)
+    for name, other in (("big.yml", big), ("small.yml", small)):     # made at twice or half the resolution
+        _write_opencv_yaml(tmp_path / name, other, size=False)
+        code, err = _run_main(capsys, ["--left", src["left"], "--right", src["right"], "-c", str(tmp_path / name)])
+        assert code == 2 and "principal point" in err and f"{W}×{H}" in err and "Traceback" not in err, err
 
 
 def _assert_plays_the_truth(capture, pipeline, truth):
