@@ -28,8 +28,38 @@ def _compress(img: np.ndarray, encoding: str, quality: int) -> np.ndarray:
     return buf.reshape(-1)
 
 
+# JPEG start-of-frame markers (baseline, progressive, lossless...): the frame header names the components.
+_JPEG_SOF = frozenset((0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF))
+
+
+def jpeg_components(buf: np.ndarray) -> int | None:
+    """Colour components a JPEG's frame header declares (1: grey, 3: colour), read from the few marker
+    segments before it; None when the bytes are not a JPEG or end before the header."""
+    n = len(buf)
+    if n < 4 or buf[0] != 0xFF or buf[1] != 0xD8:
+        return None
+    i = 2
+    while i + 9 < n:
+        if buf[i] != 0xFF:
+            return None
+        marker = int(buf[i + 1])
+        if marker == 0xFF:              # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_SOF:
+            return int(buf[i + 9])
+        i += 2 + ((int(buf[i + 2]) << 8) | int(buf[i + 3]))
+    return None
+
+
 def _decompress(buf: np.ndarray, which: str) -> np.ndarray:
-    img = cv2.imdecode(np.asarray(buf, np.uint8), cv2.IMREAD_UNCHANGED)
+    data = np.asarray(buf, np.uint8)
+    if jpeg_components(data) == 3:      # libjpeg converts to RGB itself: no BGR image, no cvtColor pass
+        img = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB)
+        if img is None:
+            raise ImageDecodeError(f"{which} image bytes do not decode")
+        return img
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ImageDecodeError(f"{which} image bytes do not decode")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img

@@ -1,13 +1,14 @@
 """Codec: every schema round-trips; every malformed case is rejected with its typed error."""
 from __future__ import annotations
 
+import cv2
 import msgpack
 import numpy as np
 import pytest
 
 from common import messages as m
 from common.camera import StereoCalibration
-from common.images import frame_images, make_frame
+from common.images import frame_images, jpeg_components, make_frame
 
 rng = np.random.default_rng(0)
 
@@ -72,6 +73,23 @@ def test_compressed_frames_decode_to_the_same_size():
         assert left.shape == img.shape
     left, _ = frame_images(m.decode(m.encode(make_frame(img, img, 1, 1, "png"))))
     assert np.array_equal(left, img)  # png is lossless
+
+
+def test_jpeg_frames_decode_straight_to_rgb_with_the_colours_in_place():
+    # The decoder reads the JPEG header's component count and has libjpeg write RGB directly; the
+    # image must be what OpenCV's BGR decode turned into RGB was, and a grey JPEG must stay grey.
+    img = cv2.GaussianBlur(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8), (0, 0), 1.5)
+    img[:, :20] = (230, 20, 20)                                            # a red stripe: channel order shows
+    frame = m.decode(m.encode(make_frame(img, img, 1, 1, "jpeg", quality=95)))
+    left, _ = frame_images(frame)
+    bgr = cv2.imdecode(np.asarray(frame.left), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(left, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    assert left[24, 10, 0] > 200 and left[24, 10, 2] < 60
+    assert jpeg_components(frame.left) == 3
+    grey = m.decode(m.encode(make_frame(img[:, :, 1].copy(), img[:, :, 1].copy(), 1, 1, "jpeg")))
+    assert jpeg_components(grey.left) == 1 and frame_images(grey)[0].shape == (48, 64)
+    assert jpeg_components(np.frombuffer(b"\xff\xd8\xff\xe0\x00\x10", np.uint8)) is None   # ends early
+    assert jpeg_components(cv2.imencode(".png", img)[1]) is None
 
 
 def _payload(**changes):
