@@ -215,15 +215,10 @@ def services_alive(opts: BusOptions, wait_s: float = 2.0) -> list[str]:
     one's bus and each would take the other's frames.  A peer sees the tokens of the sessions it has
     linked to, and gossip links them one by one: asked until two answers agree, within ``wait_s``.
     Raises BusConfigError when the session cannot open."""
-    conf = make_config(opts)
-    hub = _hub_endpoint(conf)
+    hub = _hub_endpoint(make_config(opts))
     if hub is None or port_free(*hub):
         return []
-    try:
-        session = zenoh.open(conf)
-    except zenoh.ZError as e:
-        raise BusConfigError(f"cannot open the Zenoh session: {_zenoh_reason(e)}") from None
-    with session:
+    with open_session(opts) as session:
         deadline = time.monotonic() + wait_s
         while (not list(session.info.peers_zid()) and not list(session.info.routers_zid())
                and time.monotonic() < deadline):

@@ -64,8 +64,7 @@ from pathlib import Path
 
 import zenoh
 
-from common.bus import (BusConfigError, Node, add_bus_arguments, bus_options, make_config, services_alive,
-                        setup_logging)
+from common.bus import BusConfigError, Node, add_bus_arguments, bus_options, services_alive, setup_logging
 from common.messages import DecodeError, Heartbeat, decode
 
 log = logging.getLogger("flyslam.supervisor")
@@ -702,11 +701,7 @@ def main(argv=None) -> int:
     if launch.robot and args.robot == "rig":
         opts.robot = launch.robot
     try:
-        make_config(opts)   # a bad bus flag fails here, before the run folder is made or anything starts
-    except BusConfigError as e:
-        print(f"flyslam run: {e}", file=sys.stderr)
-        return 2
-    try:
+        # a bad bus flag fails here (the config is built first), before the run folder is made
         taken = services_alive(opts)
     except BusConfigError as e:
         print(f"flyslam run: {e}", file=sys.stderr)

@@ -13,6 +13,26 @@ from common.bus import Node, add_bus_arguments, bus_options, setup_logging
 from common.config_args import config_from_args
 
 
+def load_kernels_ahead(log: logging.Logger, warm_up: Callable[[], float], first_use: str,
+                       probes: list | None = None) -> None:
+    """Run a core's ``warm_up`` (numba loads its kernels from the cache) before the service takes its
+    inputs, so ``first_use`` ("the first frame") pays for none.  With ``probes`` (one kernel per kernel
+    module: numba's index is per source file), skipped when the cache lacks them: they would compile
+    instead, seconds without a liveliness token, which the supervisor takes for a hung process.  A
+    failure only loses the head start: logged, never raised."""
+    if probes is not None:
+        from common.numba_cache import on_disk
+        if not on_disk(probes):
+            log.warning("numba's cache lacks the %s's kernels: %s will compile them "
+                        "(`python -m common.warmup` compiles every kernel once)", log.name.rsplit(".", 1)[-1],
+                        first_use)
+            return
+    try:
+        log.info("kernels loaded in %.2f s", warm_up())
+    except Exception as e:  # noqa: BLE001 - only a head start: the first use loads them instead
+        log.warning("loading the kernels ahead failed (%s: %s); %s will", type(e).__name__, e, first_use)
+
+
 def service_parser(name: str, description: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=f"flyslam {name}", description=description,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)

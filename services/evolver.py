@@ -27,7 +27,7 @@ from common import streams as S
 from common.config_args import add_config_arguments
 from common.fly import EvolverConfig
 from common.fly.core import EvolverCore, EvolverServiceConfig, FrameResult, warm_up
-from services.base import config_or_exit, run_service, service_parser, survive
+from services.base import config_or_exit, load_kernels_ahead, run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.evolver")
 EVOLVER_FLAGS = ["population", "depth_min", "depth_max"]
@@ -132,20 +132,10 @@ def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -
 
 
 def load_kernels(args) -> None:
-    """Before joining the bus (common.fly.core.warm_up): the first frame then pays for no kernel.  Not
-    when they would compile instead (a cache emptied or made stale by a source change): seconds without
-    a liveliness token, which the supervisor takes for a hung process."""
+    """Before joining the bus (common.fly.core.warm_up): the first frame then pays for no kernel."""
     from common.fly import fitness, operators
-    from common.numba_cache import on_disk
-    # one kernel of each of the two big kernel modules: numba's index is per source file
-    if not on_disk([fitness._fitness_kernel_serial, operators.plan_batch]):
-        log.warning("numba's cache lacks the evolver's kernels: the first frame compiles them "
-                    "(`python -m common.warmup` compiles every kernel once)")
-        return
-    try:
-        log.info("kernels loaded in %.2f s", warm_up(config_or_exit(EvolverConfig, args, only=EVOLVER_FLAGS)))
-    except Exception as e:  # noqa: BLE001 - only a head start: the first frame loads them instead
-        log.warning("loading the kernels ahead failed (%s: %s); the first frame will", type(e).__name__, e)
+    load_kernels_ahead(log, lambda: warm_up(config_or_exit(EvolverConfig, args, only=EVOLVER_FLAGS)),
+                       "the first frame", probes=[fitness._fitness_kernel_serial, operators.plan_batch])
 
 
 def main(argv=None) -> int:

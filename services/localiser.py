@@ -39,7 +39,7 @@ from common.pose_buffer import PoseBuffer
 from common.slam.config import ArchiveConfig, LocaliserConfig, LocaliserServiceConfig
 from common.slam.standin import StandInCore
 from common.trajectory import TrajectoryFormatError, format_tum, parse_tum
-from services.base import config_or_exit, run_service, service_parser
+from services.base import config_or_exit, load_kernels_ahead, run_service, service_parser
 
 if TYPE_CHECKING:    # imported at run time by load_localiser, in a thread: it is the slow part of a start
     from common.slam.core import LocaliserCore, LocaliserOutput
@@ -149,10 +149,7 @@ def load_localiser(run: LocaliserServiceConfig, config: LocaliserConfig, map_pat
     class, map data or None, restarted)."""
     from common.slam.core import LocaliserCore, warm_up
 
-    try:
-        log.info("kernels loaded in %.2f s", warm_up(config))
-    except Exception as e:  # noqa: BLE001 - only a head start: the first population loads them instead
-        log.warning("loading the kernels ahead failed (%s: %s); the first population will", type(e).__name__, e)
+    load_kernels_ahead(log, lambda: warm_up(config), "the first population")
     return (LocaliserCore, *starting_map(run, map_path))
 
 

@@ -18,7 +18,7 @@ from common import streams as S
 from common.config_args import add_config_arguments
 from common.planning import PlannerConfig
 from common.planning.core import PlannerCore, PlannerServiceConfig, velocity_command, warm_up  # noqa: F401 (API)
-from services.base import config_or_exit, run_service, service_parser, survive
+from services.base import config_or_exit, load_kernels_ahead, run_service, service_parser, survive
 
 log = logging.getLogger("flyslam.planner")
 PLANNER_FLAGS = ["resolution", "robot_radius", "v_max", "omega_max", "slow_clearance_m", "unseen_half_life_s"]
@@ -86,21 +86,11 @@ def body(node, args) -> int:
 
 
 def load_kernels(args) -> None:
-    """Before joining the bus (common.planning.core.warm_up), as the evolver does; not when they would
-    compile instead (a cache emptied or made stale by a source change): seconds without a liveliness
-    token, which the supervisor takes for a hung process."""
-    from common.numba_cache import on_disk
+    """Before joining the bus (common.planning.core.warm_up), as the evolver does."""
     from common.planning import harmonic, multigrid, multigrid_hierarchy
-    # one kernel of each kernel module: numba's index is per source file
-    if not on_disk([harmonic.flood_from_target, multigrid._cycle, multigrid_hierarchy.fine_system]):
-        log.warning("numba's cache lacks the planner's kernels: the first cycles compile them "
-                    "(`python -m common.warmup` compiles every kernel once)")
-        return
-    try:
-        config = config_or_exit(PlannerConfig, args, only=PLANNER_FLAGS, rename=RENAME)
-        log.info("kernels loaded in %.2f s", warm_up(config))
-    except Exception as e:  # noqa: BLE001 - only a head start: the first cycles load them instead
-        log.warning("loading the kernels ahead failed (%s: %s); the first cycles will", type(e).__name__, e)
+    config = config_or_exit(PlannerConfig, args, only=PLANNER_FLAGS, rename=RENAME)
+    load_kernels_ahead(log, lambda: warm_up(config), "the first cycles",
+                       probes=[harmonic.flood_from_target, multigrid._cycle, multigrid_hierarchy.fine_system])
 
 
 def main(argv=None) -> int:

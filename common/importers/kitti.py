@@ -99,7 +99,7 @@ def load_kitti(path, sequence: str | None = None, max_frames: int | None = None)
     if not (seq_dir / left_name).is_dir():
         raise DatasetLayoutError(f"KITTI: {seq_dir / left_name} not found (nor the colour cameras' "
                                  f"{seq_dir / CAMERA_PAIRS[1][0]})")
-    left_dir = require(seq_dir / left_name, "KITTI")
+    left_dir = seq_dir / left_name
     right_dir = require(seq_dir / right_name, "KITTI")
     calib_rows = parse_calib(require(seq_dir / "calib.txt", "KITTI"), (P_left, P_right))
     stamps = parse_times(require(seq_dir / "times.txt", "KITTI"))
