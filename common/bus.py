@@ -273,19 +273,26 @@ class _RateLimitedLog:
 
 
 class LatestSubscription:
-    """Latest-value subscription: a one-message slot filled by a Zenoh callback, plus validation.
+    """Latest-value subscription: a one-message slot, plus validation.
 
     :meth:`take` returns the newest valid message not yet taken (or None); :meth:`wait` blocks on the
     slot (no polling: an idle consumer costs nothing). Only the message taken is decoded. Messages
     overwritten before being taken are counted as ``skipped`` from gaps in the envelope's seq (a restart
     of the publisher, i.e. seq going backwards, is not counted as a gap).
+
+    ``polled`` (for a consumer that only calls :meth:`take`, on its own period): the slot is Zenoh's
+    one-sample ring channel, so a sample overwritten before it is taken never reaches Python at all —
+    no thread wakes up, no GIL is taken for it. Without it a Zenoh callback fills the slot, which
+    :meth:`wait` needs.
     """
 
-    def __init__(self, node: "Node", key: str, expected, name: str):
+    def __init__(self, node: "Node", key: str, expected, name: str, polled: bool = False):
         self._node, self._expected, self.name = node, expected, name
         self._ready = threading.Condition()
         self._payload = None          # the newest zenoh payload not yet taken
-        self._sub = node.session.declare_subscriber(key, self._on_sample)
+        self.polled = bool(polled)
+        self._sub = node.session.declare_subscriber(
+            key, zenoh.handlers.RingChannel(1) if self.polled else self._on_sample)
         self.received = 0
         self.skipped = 0
         self._last_seq: int | None = None
@@ -296,8 +303,12 @@ class LatestSubscription:
             self._ready.notify()
 
     def take(self):
-        with self._ready:
-            payload, self._payload = self._payload, None
+        if self.polled:
+            sample = self._sub.try_recv()
+            payload = None if sample is None else (sample.payload, sample.attachment)
+        else:
+            with self._ready:
+                payload, self._payload = self._payload, None
         if payload is None:
             return None
         data, side = payload
@@ -317,6 +328,8 @@ class LatestSubscription:
     def wait(self, timeout: float, poll: float = 0.1):
         """Block up to ``timeout`` seconds (or until the node stops: checked every ``poll`` s) for the
         next message."""
+        if self.polled:
+            raise RuntimeError(f"{self.name}: a polled subscription has take() only, not wait()")
         deadline = time.monotonic() + timeout
         while not self._node.stopping:
             msg = self.take()
@@ -529,9 +542,10 @@ class Node:
             latched, reliable, stream = latched or stream.latched, reliable or stream.reliable, stream.key
         return Publisher(self, self.key(stream), latched=latched, reliable=reliable)
 
-    def subscribe_latest(self, stream: "str | Stream", expected=None) -> LatestSubscription:
+    def subscribe_latest(self, stream: "str | Stream", expected=None, polled: bool = False) -> LatestSubscription:
+        """Latest-value subscription (see :class:`LatestSubscription`; ``polled`` for take()-only consumers)."""
         stream, expected = _resolve(stream, expected)
-        sub = LatestSubscription(self, self.key(stream), expected, stream.replace("/", "_"))
+        sub = LatestSubscription(self, self.key(stream), expected, stream.replace("/", "_"), polled)
         self._subscriptions.append(sub)
         return sub
 
@@ -615,6 +629,30 @@ class Node:
         q = self.session.declare_queryable(self.key(stream), answer)
         self._subscriptions.append(q)
         return q
+
+    def hold_latched(self, stream: "str | Stream") -> None:
+        """Keep the newest payload of ``stream``, whoever publishes it, and answer queries with it: a
+        restarted service recovers its state from the bus even when the process that published it is
+        the one that died (the supervisor does this for its launch file's ``latch`` streams).
+
+        The newest sample waits in Zenoh's one-sample ring channel: a 30 Hz stream never wakes this
+        process; a query reads the ring, and the last payload read is kept for when the ring is empty."""
+        stream, _ = _resolve(stream, None)
+        key = self.key(stream)
+        newest = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+        last: list[bytes | None] = [None]
+        lock = threading.Lock()
+
+        def answer(query: zenoh.Query) -> None:
+            with lock:
+                sample = newest.try_recv()
+                if sample is not None:
+                    last[0] = sample.payload.to_bytes()
+                payload = last[0]
+            if payload is not None:
+                query.reply(key, payload)
+
+        self._subscriptions += [newest, self.session.declare_queryable(key, answer)]
 
     def watch_liveliness(self, prefix: str, callback: Callable[[str, bool], None]):
         """Call ``callback(name, alive)`` for every liveliness token under ``<robot>/<prefix>`` (e.g.

@@ -500,28 +500,12 @@ class Supervisor:
             self.stop_reason = reason
             self._stop.set()
 
-    def _hold_latched(self, node: Node, stream: str) -> None:
-        """Keep the newest payload of ``stream`` and answer queries with it (a restarted service recovers
-        its state from the bus even when the process that published it is the one that died)."""
-        last: list[bytes | None] = [None]
-        key = node.key(stream)
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            last[0] = sample.payload.to_bytes()
-
-        def on_query(query: zenoh.Query) -> None:
-            if last[0] is not None:
-                query.reply(key, last[0])
-
-        node.session.declare_subscriber(key, on_sample)
-        node.session.declare_queryable(key, on_query)
-
     def run(self, node: Node) -> int:
         robot = node.robot
         node.session.liveliness().declare_subscriber(f"{robot}/health/*", self._on_liveliness, history=True)
         node.session.declare_subscriber(f"{robot}/status/*", self._on_status)
         for stream in self.launch.latch:
-            self._hold_latched(node, stream)
+            node.hold_latched(stream)
         env = dict(os.environ, PYTHONUNBUFFERED="1", FLYSLAM_RUN_DIR=str(self.out))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         report = [sys.executable, "-c", REPORT_SOURCE, str(self.out)] if self.launch.report == "pipeline" else None

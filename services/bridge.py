@@ -197,7 +197,7 @@ def subscribe_all(node, inbox: Inbox, map_period_s: float, pose_period_s: float)
         else:
             node.subscribe(stream, callback=lambda msg, name=name: inbox.put(name, msg))
     node.watch_liveliness(S.HEALTH_PREFIX, lambda service, alive: inbox.put("health", (service, alive)))
-    latest = {stream.key: node.subscribe_latest(stream) for stream in LATEST_STREAMS}
+    latest = {stream.key: node.subscribe_latest(stream, polled=True) for stream in LATEST_STREAMS}
     # The target comes by callback too; asked for as well, since a target published once before the
     # subscription matched its publisher (a bridge started with the planner) was otherwise never shown.
     latched = {S.STEREO_CALIBRATION.key: node.latched(S.STEREO_CALIBRATION),

@@ -51,7 +51,7 @@ def body(node, args) -> int:
     # A restarted planner takes the map->odom the supervisor latches, or it would wait for the
     # localiser's next one (none while that is restarting or relocalising too).
     map_to_odom = node.latched(S.SLAM_MAP_TO_ODOM, retry_s=float("inf"))
-    populations = node.subscribe_latest(S.FLIES_POPULATION)
+    populations = node.subscribe_latest(S.FLIES_POPULATION, polled=True)   # taken once per cycle
     cmd_pub, field_pub = node.publisher(S.PLANNER_CMD_VEL), node.publisher(S.PLANNER_FIELD)
     last_field, last_reason = 0.0, ""
     while not node.stopping:

@@ -6,6 +6,7 @@ import sys
 import textwrap
 import time
 
+import pytest
 
 from common.bus import BusOptions, Node
 from common.messages import StereoFrame, Target, header
@@ -29,13 +30,23 @@ PUBLISHER = textwrap.dedent("""
 """)
 
 
-def test_two_processes_exchange_messages_and_a_slow_consumer_gets_the_newest(zenoh_port):
+@pytest.mark.parametrize("polled", [False, True], ids=["slot", "polled"])
+def test_two_processes_exchange_messages_and_a_slow_consumer_gets_the_newest(zenoh_port, polled):
+    """Both kinds of latest-value subscription: the slot a callback fills, and the polled one (Zenoh's
+    one-sample ring, which drops a stale frame before it reaches Python)."""
     n = 150
     with Node("subtest", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
-        sub = node.subscribe_latest("stereo/frame", StereoFrame)
+        sub = node.subscribe_latest("stereo/frame", StereoFrame, polled=polled)
         proc = subprocess.Popen([sys.executable, "-c", PUBLISHER, hub(zenoh_port), str(n)], cwd=ROOT)
         try:
-            first = sub.wait(timeout=20)
+            if polled:
+                with pytest.raises(RuntimeError, match="take"):
+                    sub.wait(timeout=0.1)
+                got = []
+                wait_until(lambda: got.append(sub.take()) or got[-1] is not None, timeout=20, poll=0.005)
+                first = got[-1]
+            else:
+                first = sub.wait(timeout=20)
             assert first is not None, "no frame arrived from the other process"
             # The latched target is served to a late joiner on request.
             target = node.query_latest("planner/target", Target, timeout=2.0)
@@ -70,6 +81,26 @@ def test_latched_publisher_answers_late_joiners(zenoh_port):
             assert (msg.x, msg.y) == (1.5, -2.0)
 
 
+def test_a_held_stream_answers_with_its_newest_message_after_the_publisher_is_gone(zenoh_port):
+    """What the supervisor does for its launch file's latch streams (Node.hold_latched): a restarted
+    service asks, and gets the last message of a process that has died."""
+    opts = BusOptions(hub=hub(zenoh_port))
+    with Node("holder", opts, handle_signals=False) as holder:
+        holder.hold_latched("planner/target")
+        with Node("talker", opts, handle_signals=False) as talker:
+            time.sleep(0.5)
+            pub = talker.publisher("planner/target")           # not latched: nobody else keeps it
+            for i in range(5):
+                pub.publish(Target(x=float(i), y=0.0, header=header(i, 5, "map")))
+                time.sleep(0.05)
+            time.sleep(0.3)
+        with Node("restarted", opts, handle_signals=False) as late:
+            msg = late.query_latest("planner/target", Target, 2.0)
+            assert msg is not None and msg.x == 4.0, "the newest message, after its publisher left"
+            again = late.query_latest("planner/target", Target, 2.0)
+            assert again is not None and again.x == 4.0, "asked twice, it still answers (the ring was read)"
+
+
 def test_rejected_payloads_are_counted_not_raised(zenoh_port):
     opts = BusOptions(hub=hub(zenoh_port))
     with Node("rx", opts, handle_signals=False) as rx, Node("tx", opts, handle_signals=False) as tx:
@@ -94,6 +125,7 @@ def test_a_populations_image_reaches_subscribers_beside_the_payload_and_stays_ou
                           image=image, header=m.header(0, 5, m.CAMERA_LEFT_OPTICAL))
     with Node("pub", opts, handle_signals=False) as a, Node("sub", opts, handle_signals=False) as b:
         latest = b.subscribe_latest("flies/population", m.FlyPopulation)
+        polled = b.subscribe_latest("flies/population", m.FlyPopulation, polled=True)
         typed, raw = [], []
         b.subscribe("flies/population", m.FlyPopulation, typed.append)
         b.subscribe("flies/population", None, lambda key, payload: raw.append(payload), raw=True)
@@ -106,5 +138,7 @@ def test_a_populations_image_reaches_subscribers_beside_the_payload_and_stays_ou
             if got is not None and typed and raw:
                 break
         assert got is not None and np.array_equal(got.image, image) and got.source_seq == 7
+        from_ring = polled.take()
+        assert from_ring is not None and np.array_equal(from_ring.image, image)
         assert np.array_equal(typed[0].image, image)
         assert len(raw[0]) < 10_000 and m.decode(raw[0]).image is None

@@ -7,7 +7,6 @@ import threading
 import time
 
 import numpy as np
-import zenoh
 
 from common import messages as m
 from common.bus import BusOptions, Node
@@ -16,19 +15,6 @@ from common.trajectory import read_tum
 from common.slam.standin import LOADING_STATUS, StandInCore
 from tests.helpers import hub, start_module, stop, wait_until
 from tests.test_relocalise import CALIB, corridor, population
-
-
-def hold_latched(node: Node, stream: str):
-    """What the supervisor does for its launch file's ``latch`` streams: keep the newest payload of
-    ``stream`` and answer queries with it, whoever published it."""
-    last: list[bytes | None] = [None]
-    key = node.key(stream)
-    node.session.declare_subscriber(key, lambda sample: last.__setitem__(0, sample.payload.to_bytes()))
-
-    def on_query(query: zenoh.Query) -> None:
-        if last[0] is not None:
-            query.reply(key, last[0])
-    node.session.declare_queryable(key, on_query)
 
 
 def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp_path, zenoh_port):
@@ -53,7 +39,7 @@ def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp
         step[0] += int(advance)
 
     with Node("feeder", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
-        hold_latched(node, "slam/map_to_odom")
+        node.hold_latched("slam/map_to_odom")     # as the supervisor does for its launch file's latch streams
         node.subscribe("slam/pose", m.PoseEstimate, lambda p: (lock.acquire(), poses.append((time.monotonic(), p)),
                                                                lock.release()))
         node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(CALIB, 1, 1))
