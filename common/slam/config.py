@@ -55,7 +55,8 @@ class LocaliserConfig:
     loop_closure: bool = True           # register a new keyframe against old ones near it (a loop factor)
     loop_photometric: bool = True       # measure a loop on the two keyframes' fly neighbourhoods (half-
                                         # resolution images kept with each keyframe; needs photometric)
-    loop_radius_m: float = 3.0          # an old keyframe this near (map frame) is a loop candidate ...
+    loop_radius_m: float | None = None  # an old keyframe this near (map frame) is a loop candidate (None:
+                                        # keyframe_distance_m: the views nearly coincide, see backend) ...
     loop_max_angle_rad: float = np.deg2rad(30.0)   # ... when it looks within this of the same way
     loop_min_separation: int = 10       # ... and is at least this many keyframes older
     loop_window: tuple = (1.0, 1.5, np.deg2rad(15.0))   # its δ search half-widths: along, across the view, heading
