@@ -16,7 +16,7 @@ def test_deterministic_eval_repeats_its_trajectory_exactly(tmp_path):
         assert main([str(CORRIDOR), "--out", str(out), "--max-frames", "12", "--population", "1500",
                      "--generations", "10", "--deterministic"]) == 0
         metrics = json.loads((out / "metrics.json").read_text())
-        assert metrics["frames"] == 12 and "ate_rmse_m" in metrics["flyslam"]
+        assert metrics["frames"] == 12 and "ate_rmse_m" in metrics["flyslam"] and metrics["loop_closures"] == []
         runs.append((out / "estimated.tum").read_bytes())
     assert runs[0] == runs[1]
 
@@ -72,3 +72,17 @@ def test_ctrl_c_ends_an_eval_where_it_is_and_keeps_what_was_done(tmp_path):
     assert metrics["interrupted"] and 25 <= metrics["frames"] < 301, metrics["frames"]
     assert "ate_rmse_m" in metrics["flyslam"] and (out / "estimated.tum").stat().st_size > 0
     assert "interrupted: evaluating the first" in text
+
+
+def test_the_summary_says_which_loops_closed_and_metrics_keep_every_attempt():
+    from common.slam.backend import LoopClosure
+    from deploy.commands.evaluate import loop_line, loop_record
+    loops = [LoopClosure(0, 32, 0.0, False, "photometric: 12 % inliers (< 50 %)"), LoopClosure(0, 33, 0.1503, True)]
+    line = loop_line(loops)
+    assert line.startswith("loop closures: 1 accepted") and "keyframe 33 to 0 moved it 0.150 m" in line
+    assert "1 refused" in line
+    assert [loop_record(lc) for lc in loops] == [
+        {"old_keyframe": 0, "new_keyframe": 32, "accepted": False, "correction_m": 0.0,
+         "reason": "photometric: 12 % inliers (< 50 %)"},
+        {"old_keyframe": 0, "new_keyframe": 33, "accepted": True, "correction_m": 0.1503}]
+    json.dumps([loop_record(lc) for lc in loops])      # metrics.json can hold them

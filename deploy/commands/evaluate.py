@@ -6,7 +6,8 @@ seed; see common.lockstep), then writes to DIR:
   ``groundtruth.tum`` and, when the recording has odometry, ``odometry.tum``;
 - ``metrics.json``: ATE RMSE after SE(3) alignment, mean RPE (translation, rotation), drift in % of path
   length, frames per second — for the final trajectory ("flyslam"), for the poses as published frame by
-  frame ("flyslam_online") and for odometry alone;
+  frame ("flyslam_online") and for odometry alone; every loop closure attempted (keyframes, accepted,
+  how far it moved the new keyframe, why it was refused);
 - ``trajectories.png``: the three trajectories seen from above.
 """
 from __future__ import annotations
@@ -26,6 +27,22 @@ from common.recording import RecordingError, RecordingReader
 from common.trajectory import write_tum
 from common.trajectory_metrics import TrajectoryMismatch, evaluate, factor_nees, path_length
 from deploy.progress import Progress
+
+
+def loop_record(lc) -> dict:
+    """One loop closure attempt (common.slam.backend.LoopClosure) as metrics.json keeps it."""
+    return {"old_keyframe": lc.old_id, "new_keyframe": lc.new_id, "accepted": lc.accepted,
+            "correction_m": round(float(lc.correction_m), 4), **({"reason": lc.reason} if lc.reason else {})}
+
+
+def loop_line(loops) -> str:
+    """The summary's line on loop closures: how many held, and what each accepted one corrected."""
+    accepted = [lc for lc in loops if lc.accepted]
+    held = ", ".join(f"keyframe {lc.new_id} to {lc.old_id} moved it {lc.correction_m:.3f} m" for lc in accepted[:5])
+    more = f" and {len(accepted) - 5} more" if len(accepted) > 5 else ""
+    refused = len(loops) - len(accepted)
+    return (f"loop closures: {len(accepted)} accepted" + (f" ({held}{more})" if accepted else "")
+            + (f", {refused} refused (reasons in metrics.json)" if refused else ""))
 
 
 def plot(path: Path, result, odom_in_map, stamps, estimated) -> None:
@@ -174,6 +191,8 @@ def main(argv=None) -> int:
                "frames_per_s": round(result.frames_per_s, 3), "registered_fraction": round(result.registered_fraction, 3),
                "keyframes": result.keyframes, "pose_graph_failed_updates": result.graph_failed_updates,
                "pose_graph_unsolved_keyframes": result.graph_failures}
+    loops = result.localiser.localiser.loop_closures if result.localiser.localiser is not None else []
+    metrics["loop_closures"] = [loop_record(lc) for lc in loops]
     odom_in_map = []
     with_odom = [i for i, T in enumerate(result.odometry) if T is not None]
     have_odom = len(with_odom) > 0.9 * result.frames
@@ -211,6 +230,8 @@ def main(argv=None) -> int:
     if result.graph_failed_updates or result.graph_failures:
         print(f"pose graph: {result.graph_failed_updates} iSAM2 update(s) failed and were solved again from the "
               f"whole graph; {result.graph_failures} keyframe(s) kept the front end's pose (graph unsolvable)")
+    if loops:
+        print(loop_line(loops))
     for name in ("flyslam", "flyslam_online", "odometry_only"):
         if name in metrics:
             r = metrics[name]
