@@ -281,9 +281,9 @@ class LatestSubscription:
     of the publisher, i.e. seq going backwards, is not counted as a gap).
 
     ``polled`` (for a consumer that only calls :meth:`take`, on its own period): the slot is Zenoh's
-    one-sample ring channel, so a sample overwritten before it is taken never reaches Python at all —
-    no thread wakes up, no GIL is taken for it. Without it a Zenoh callback fills the slot, which
-    :meth:`wait` needs.
+    one-sample ring channel, so a sample overwritten before it is taken never reaches Python (Zenoh's
+    own threads still receive it; no Python thread runs and no GIL is taken for it). Without it a
+    Zenoh callback fills the slot, which :meth:`wait` needs.
     """
 
     def __init__(self, node: "Node", key: str, expected, name: str, polled: bool = False):
@@ -296,6 +296,7 @@ class LatestSubscription:
         self.received = 0
         self.skipped = 0
         self._last_seq: int | None = None
+        self._closed = False
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         with self._ready:
@@ -304,6 +305,8 @@ class LatestSubscription:
 
     def take(self):
         if self.polled:
+            if self._closed:
+                return None
             sample = self._sub.try_recv()
             payload = None if sample is None else (sample.payload, sample.attachment)
         else:
@@ -342,6 +345,7 @@ class LatestSubscription:
         return None
 
     def close(self):
+        self._closed = True
         self._sub.undeclare()
 
 
@@ -635,8 +639,9 @@ class Node:
         restarted service recovers its state from the bus even when the process that published it is
         the one that died (the supervisor does this for its launch file's ``latch`` streams).
 
-        The newest sample waits in Zenoh's one-sample ring channel: a 30 Hz stream never wakes this
-        process; a query reads the ring, and the last payload read is kept for when the ring is empty."""
+        The newest sample waits in Zenoh's one-sample ring channel: a 30 Hz stream never reaches
+        Python here (no GIL taken per sample); a query reads the ring, and the last payload read is
+        kept for when the ring is empty.  A failed answer is counted as ``query_errors``."""
         stream, _ = _resolve(stream, None)
         key = self.key(stream)
         newest = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
@@ -644,13 +649,17 @@ class Node:
         lock = threading.Lock()
 
         def answer(query: zenoh.Query) -> None:
-            with lock:
-                sample = newest.try_recv()
-                if sample is not None:
-                    last[0] = sample.payload.to_bytes()
-                payload = last[0]
-            if payload is not None:
-                query.reply(key, payload)
+            try:
+                with lock:
+                    sample = newest.try_recv()
+                    if sample is not None:
+                        last[0] = sample.payload.to_bytes()
+                    payload = last[0]
+                if payload is not None:
+                    query.reply(key, payload)
+            except Exception as e:  # noqa: BLE001 - e.g. the session closing; one answer must not kill it
+                self.counters.add("query_errors")
+                self._bad.warn(f"hold-{stream}", f"{self.service}: answering {stream}: {type(e).__name__}: {e}")
 
         self._subscriptions += [newest, self.session.declare_queryable(key, answer)]
 

@@ -142,3 +142,10 @@ def test_a_populations_image_reaches_subscribers_beside_the_payload_and_stays_ou
         assert from_ring is not None and np.array_equal(from_ring.image, image)
         assert np.array_equal(typed[0].image, image)
         assert len(raw[0]) < 10_000 and m.decode(raw[0]).image is None
+
+
+def test_a_closed_polled_subscription_takes_nothing_instead_of_raising(zenoh_port):
+    with Node("closing", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
+        sub = node.subscribe_latest("stereo/frame", StereoFrame, polled=True)
+        sub.close()
+        assert sub.take() is None
