@@ -54,15 +54,11 @@ def jpeg_components(buf: np.ndarray) -> int | None:
 
 def _decompress(buf: np.ndarray, which: str) -> np.ndarray:
     data = np.asarray(buf, np.uint8)
-    if jpeg_components(data) == 3:      # libjpeg converts to RGB itself: no BGR image, no cvtColor pass
-        img = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB)
-        if img is None:
-            raise ImageDecodeError(f"{which} image bytes do not decode")
-        return img
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    rgb = jpeg_components(data) == 3    # libjpeg converts to RGB itself: no BGR image, no cvtColor pass
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB if rgb else cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ImageDecodeError(f"{which} image bytes do not decode")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 and not rgb else img
 
 
 def make_frame(left: np.ndarray, right: np.ndarray, seq: int, stamp_ns: int, encoding: str = "rgb8",

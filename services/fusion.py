@@ -106,12 +106,15 @@ class FusionHandlers:
         self.rate = OutputRate(run.publish_hz)
         self._held: tuple[m.PoseEstimate, m.PoseEstimate] | None = None
 
+    def _publish(self, odom: m.PoseEstimate, pose: m.PoseEstimate) -> None:
+        self.pubs[S.FUSION_ODOM].publish(odom)
+        self.pubs[S.FUSION_POSE].publish(pose)
+
     def _output(self, odom: m.PoseEstimate, pose: m.PoseEstimate) -> None:
         """Publish the (fusion/odom, fusion/pose) pair now, or hold it as the newest until it is due."""
         if self.rate.due(odom.header.stamp_ns, (odom.status, pose.status), time.monotonic()):
             self._held = None
-            self.pubs[S.FUSION_ODOM].publish(odom)
-            self.pubs[S.FUSION_POSE].publish(pose)
+            self._publish(odom, pose)
         else:
             self._held = (odom, pose)
 
@@ -120,10 +123,8 @@ class FusionHandlers:
         when the service stops (the latched outputs then hold the newest state)."""
         with self.lock:
             if self._held is not None and (self.rate.overdue(time.monotonic()) or stopping):
-                odom, pose = self._held
+                self._publish(*self._held)
                 self._held = None
-                self.pubs[S.FUSION_ODOM].publish(odom)
-                self.pubs[S.FUSION_POSE].publish(pose)
 
     def on_wheels(self, msg: m.WheelOdometry) -> None:
         with self.lock:
@@ -155,8 +156,7 @@ class FusionHandlers:
         with self.lock:
             visual = self.core.visual_odometry(msg)
             if visual is not None:      # at the camera's rate already: not paced (camera stamps jitter)
-                self.pubs[S.FUSION_ODOM].publish(visual[0])
-                self.pubs[S.FUSION_POSE].publish(visual[1])
+                self._publish(*visual)
         if visual is not None:
             self.node.progress += 1
             return
