@@ -175,12 +175,30 @@ def _check_secured(conf: zenoh.Config, source) -> None:
                                  "(make certificates with `flyslam certs --out DIR`)")
 
 
+# Zenoh's async runtimes (the ZENOH_RUNTIME variable, in RON), unless the environment sets them: one
+# worker thread that also receives and connects, where Zenoh's default hands each sample from a pool of
+# reception threads to a pool of application threads. A sample then costs one thread wake-up fewer:
+# ~1.3 CPU-ms a frame across the pipeline's ~32 deliveries a frame (bench/pipeline.py, 4 % of its CPU).
+ZENOH_RUNTIME_DEFAULT = ("(rx: (handover: app), net: (handover: app), acc: (handover: app), "
+                         "app: (worker_threads: 1), tx: (worker_threads: 1))")
+
+
 def open_session(opts: BusOptions) -> zenoh.Session:
+    """A session of ``opts``; ZENOH_RUNTIME_DEFAULT unless ZENOH_RUNTIME is set (it is read once a
+    process, at its first session)."""
     conf = make_config(opts)
+    if not os.environ.get("ZENOH_RUNTIME", "").strip():
+        os.environ["ZENOH_RUNTIME"] = ZENOH_RUNTIME_DEFAULT
     try:
         return zenoh.open(conf)
     except zenoh.ZError as e:
         raise BusConfigError(f"cannot open the Zenoh session: {_zenoh_reason(e)}") from None
+    except BaseException as e:   # a Rust panic reaches Python as pyo3's PanicException, a BaseException
+        if type(e).__name__ != "PanicException":
+            raise
+        raise BusConfigError(f"cannot open the Zenoh session: ZENOH_RUNTIME={os.environ['ZENOH_RUNTIME']!r} is "
+                             "not a valid Zenoh runtime configuration (RON, e.g. '(app: (worker_threads: 1))')"
+                             ) from None
 
 
 def _hub_endpoint(conf: zenoh.Config) -> tuple[str, int] | None:

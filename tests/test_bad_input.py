@@ -40,6 +40,17 @@ def test_the_traceback_is_shown_only_with_debug(tmp_path):
     assert "BusConfigError" in debug.stderr
 
 
+def test_a_bad_zenoh_runtime_in_the_environment_is_one_line_naming_it(tmp_path, zenoh_port):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), ZENOH_RUNTIME="(nonsense")
+    run = subprocess.run([sys.executable, "-m", "deploy.cli", "record", "--out", str(tmp_path / "x.mcap"),
+                          "--hub", f"tcp/127.0.0.1:{zenoh_port}"], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=60)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert run.stderr.strip().splitlines()[-1].startswith(
+        "flyslam record: cannot open the Zenoh session: ZENOH_RUNTIME='(nonsense' is not a valid")
+    assert not (tmp_path / "x.mcap").exists()
+
+
 def test_an_internal_error_is_one_line_with_exit_1(monkeypatch, capsys):
     from deploy.commands import info
 
