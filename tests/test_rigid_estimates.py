@@ -37,3 +37,27 @@ def test_a_skewed_graph_correction_leaves_the_state_it_moves_rigid():
         loc._apply_correction(C)
     assert _skew(loc.T_map_odom[:3, :3]) < 1e-12
     assert _skew(loc._track.last_T_map_base[:3, :3]) < 1e-12
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def test_orthonormalised_gives_the_nearest_rotation_for_rounding_and_for_worse():
+    from common.geometry import make_transform, orthonormalised, so3_exp
+    rng = np.random.default_rng(3)
+    for scale in (0.0, 1e-12, 1e-9, 5e-7, 1e-4, 0.3):      # rounding, up to a sheared matrix
+        for _ in range(20):
+            M = so3_exp(rng.normal(0, 1.0, 3)) @ (np.eye(3) + rng.normal(0, scale, (3, 3)))
+            T = make_transform(M, rng.normal(0, 5.0, 3))
+            out = orthonormalised(T)
+            assert _skew(out[:3, :3]) < 1e-12 and np.linalg.det(out[:3, :3]) > 0
+            assert np.abs(out[:3, :3] - _nearest_rotation(M)).max() < 1e-11
+            assert np.array_equal(out[:3, 3], T[:3, 3]) and np.array_equal(out[3], [0, 0, 0, 1])
+
+
+def test_orthonormalised_turns_a_reflection_into_a_rotation():
+    from common.geometry import make_transform, orthonormalised
+    out = orthonormalised(make_transform(np.diag([1.0, 1.0, -1.0])))
+    assert np.linalg.det(out[:3, :3]) > 0 and _skew(out[:3, :3]) < 1e-12
