@@ -39,9 +39,11 @@ def build_parser():
 def body(node, args) -> int:
     settings = config_or_exit(PlannerServiceConfig, args)
     core = PlannerCore(config_or_exit(PlannerConfig, args, only=PLANNER_FLAGS, rename=RENAME), settings)
-    node.subscribe(S.FUSION_POSE, callback=core.on_pose)
-    node.subscribe(S.SLAM_MAP_TO_ODOM, callback=core.on_map_to_odom)
-    node.subscribe(S.FUSION_SONAR_POINTS, callback=core.on_sonar_points)
+    # The core keeps only the newest pose, map->odom and sonar points: taken once per cycle, the 30 Hz
+    # streams' other samples stay in Zenoh instead of costing a callback and a decode each.
+    latest = [(node.subscribe_latest(stream, polled=True), handler) for stream, handler in (
+        (S.FUSION_POSE, core.on_pose), (S.SLAM_MAP_TO_ODOM, core.on_map_to_odom),
+        (S.FUSION_SONAR_POINTS, core.on_sonar_points))]
     calibration = node.latched(S.STEREO_CALIBRATION)
     target = None
     if settings.target is not None:
@@ -59,6 +61,10 @@ def body(node, args) -> int:
         if target is not None and target.get() is not None:
             with survive(node, "target", log):
                 core.on_target(target.get())
+        for subscription, handler in latest:
+            msg = subscription.take()
+            if msg is not None:
+                handler(msg)
         if core.map_to_odom is None and map_to_odom.get() is not None:
             core.on_map_to_odom(map_to_odom.get())
         if calibration.get() is not None:
