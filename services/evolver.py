@@ -4,7 +4,8 @@ Takes ``stereo/frame`` with latest-value semantics (frames that arrive while it 
 counted), the calibration ``stereo/calibration`` (latched), the odometry pose ``fusion/odom`` and the
 sonar scan ``fusion/sonar``. Each new frame goes through :class:`common.fly.core.EvolverCore` (motion
 compensation, re-scoring, settling until the population is good enough or ``--settle-ms`` is spent —
-the same step ``flyslam eval`` runs) and its population is published on ``flies/population``; between
+the same step ``flyslam eval`` runs) and its population is published on ``flies/population`` (and, with
+the frame's grey left image, on ``flies/population/with_image`` for the localiser); between
 frames it keeps evolving and republishes at ``--publish-hz``, spending at most ``--duty`` of the wall
 time and only while its CPU over the last second is under ``--cpu-budget`` of a core.
 ``--trace`` publishes each frame's stage times on ``trace/evolver``.
@@ -18,6 +19,7 @@ rates.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
@@ -55,7 +57,7 @@ def body(node, args) -> int:
     node.subscribe(S.FUSION_ODOM, callback=lambda msg: core.on_odometry(msg.header.stamp_ns, m.transform_of(msg)))
     node.subscribe(S.FUSION_SONAR, callback=core.on_sonar)
     frames = node.subscribe_latest(S.STEREO_FRAME)
-    out = node.publisher(S.FLIES_POPULATION)
+    out = node.publisher(S.FLIES_POPULATION), node.publisher(S.FLIES_WITH_IMAGE)
     trace = node.publisher(S.TRACE_EVOLVER) if args.trace else None
     governor = run.governor()
     last_publish, rest_until, window = 0.0, 0.0, (time.monotonic(), 0)
@@ -89,7 +91,7 @@ def body(node, args) -> int:
             with survive(node, "evolve", log), governor.work():
                 core.step()
                 if time.monotonic() - last_publish >= 1.0 / run.publish_hz:
-                    out.publish(core.population())
+                    out[0].publish(core.population())
                     last_publish = time.monotonic()
             busy = time.monotonic() - t0
             if run.duty < 1.0:
@@ -115,13 +117,15 @@ _COUNTER = {"no calibration": "frames_without_calibration", "bad calibration": "
 
 
 def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -> bool:
-    """Publish a frame's population (and trace); count and log a refused frame. True when published."""
+    """Publish a frame's population (``out``: the flies/population and flies/population/with_image
+    publishers; the localiser's first) and trace; count and log a refused frame. True when published."""
     if result.population is None:
         node.counters.add(_COUNTER.get(result.reason.split(":")[0], "bad_frames"))
         log.log(logging.DEBUG if result.reason == "no calibration" else logging.WARNING,
                 "frame %d: %s", frame.header.seq, result.reason)
         return False
-    out.publish(result.population)
+    out[1].publish(result.population)
+    out[0].publish(dataclasses.replace(result.population, image=None))
     node.progress += 1
     node.counters.add("frames_without_odometry", int(result.without_odometry))
     node.rates["settle_generations"] = float(result.generations)

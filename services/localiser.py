@@ -1,6 +1,7 @@
 """Localiser service (SLAM): registers each newest fly population against a map of keyframe populations.
 
-Takes ``flies/population`` (latest value), the odometry pose ``fusion/odom`` as prior and the latched
+Takes ``flies/population/with_image`` (latest value: each frame's population with its grey left
+image), the odometry pose ``fusion/odom`` as prior and the latched
 ``stereo/calibration``; publishes ``slam/pose`` (base_link in map with covariance; the status says when
 a registration was rejected and odometry carried on, or that it is still relocalising) and
 ``slam/map_to_odom`` (REP-105), answers the queryable ``slam/map`` and writes the trajectory as TUM text
@@ -188,7 +189,7 @@ def body(node, args) -> int:
     node.subscribe(S.FUSION_ODOM, callback=on_odom)
     calibration = node.latched(S.STEREO_CALIBRATION)
     node.queryable(S.SLAM_MAP, serve_map)
-    populations = node.subscribe_latest(S.FLIES_POPULATION)
+    populations = node.subscribe_latest(S.FLIES_WITH_IMAGE)
     pubs = node.publisher(S.SLAM_POSE), node.publisher(S.SLAM_MAP_TO_ODOM)
     last_tum = last_map = time.monotonic()
     map_changed = False

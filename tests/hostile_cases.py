@@ -176,6 +176,8 @@ CASES = {
     }),
 }
 
+CASES[S.FLIES_WITH_IMAGE] = CASES[S.FLIES_POPULATION]     # the same population, with its image
+
 HOSTILE = [(stream, label, msg) for stream, (_, cases) in CASES.items() for label, msg in cases.items()]
 
 

@@ -17,10 +17,11 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
                         port=zenoh_port, log_path=tmp_path / "evolver.log")
     try:
         with Node("tester", BusOptions(hub=hub(zenoh_port)), handle_signals=False) as node:
-            heartbeats, populations, traces = [], [], []
+            heartbeats, populations, traces, with_image = [], [], [], []
             node.subscribe("status/evolver", m.Heartbeat, heartbeats.append)
             node.subscribe("flies/population", m.FlyPopulation, populations.append)
             node.subscribe("trace/evolver", m.EvolverTrace, traces.append)
+            node.subscribe("flies/population/with_image", m.FlyPopulation, with_image.append)
             assert wait_until(lambda: heartbeats, 30), "evolver did not come up"
             calib = StereoCalibration.ideal(96, 72)
             node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
@@ -44,6 +45,11 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
                 # settle, give or take the last generation and a loaded machine's scheduling.
                 assert (t.published_ns - t.ready_ns) * 1e-9 < 0.5, t
                 assert any(p.source_seq == seq for p in populations), f"no population published for frame {seq}"
+            # The frame's grey left image goes to the localiser's stream only: 55 kB here, 307 kB at 640×480
+            # for every other consumer of the population to receive and drop.
+            assert {p.source_seq for p in with_image} >= set(range(1, 7))
+            assert all(p.image is not None and p.image.shape == (72, 96) for p in with_image)
+            assert populations and all(p.image is None for p in populations)
             assert by_seq[1].reference is None               # first frame: nothing to recover to
             assert all(by_seq[s].reference is not None for s in range(2, 7))
     finally:
