@@ -157,8 +157,9 @@ class FlyPopulation(Message):
     fitness, generation count and the seq of the stereo frame they were last evaluated on.
     ``T_odom_camera`` is the camera pose in odom at that frame, when odometry was available; ``image``
     the grey left image of that frame (the flies' neighbourhoods, for photometric tracking), sent with
-    a frame's first publication only, as a side field (beside the payload: live subscribers get it,
-    recordings do not keep it — the frame itself is recorded)."""
+    a frame's first publication on ``flies/population/@image`` only (the localiser's stream), as a side
+    field (beside the payload: live subscribers get it, recordings do not keep it — the frame itself is
+    recorded)."""
     positions: np.ndarray = array_field("float32", (None, 3))
     fitness: np.ndarray = array_field("float32", (None,))
     generation: int = 0

@@ -101,13 +101,11 @@ class RecorderBacklog:
 
 class KeyFilter:
     """Which bus keys a recorder keeps: those one of ``patterns`` includes, by Zenoh's own key-expression
-    rules (``*`` one chunk, ``**`` any number, ``$*`` within a chunk), except the keys in ``exclude``
-    (streams that repeat another's payload, common.streams.not_recorded). Each key is decided once and
+    rules (``*`` one chunk, ``**`` any number, ``$*`` within a chunk). Each key is decided once and
     remembered, up to ``cache_size`` keys (then forgotten and decided again: a bus may carry any number
     of keys). Called from Zenoh's threads: a dict read or write is atomic."""
 
-    def __init__(self, patterns: list[str], cache_size: int = 4096, exclude: list[str] = ()):
-        self._exclude = frozenset(exclude)
+    def __init__(self, patterns: list[str], cache_size: int = 4096):
         self._patterns = []
         for p in patterns:
             try:
@@ -129,7 +127,7 @@ class KeyFilter:
                 concrete = zenoh.KeyExpr(key)
             except zenoh.ZError:
                 return False
-            keep = key not in self._exclude and any(p.includes(concrete) for p in self._patterns)
+            keep = any(p.includes(concrete) for p in self._patterns)
             if len(self._decided) >= self.cache_size:
                 self._decided.clear()
             self._decided[key] = keep

@@ -2,8 +2,8 @@
 
 ``latched``: the publisher keeps its last message and answers queries for it (late joiners get it
 with :meth:`common.bus.Node.latched`); ``reliable``: the publisher blocks under congestion instead of
-dropping; ``recorded=False``: a recorder leaves it out whatever its key patterns (it repeats another
-stream's payload). Services name streams through this module, never by a bare string.
+dropping. Services name streams through this module, never by a bare string. A key chunk starting with
+``@`` is verbatim: no wildcard (``*``, ``**``) matches it, so only a subscriber that names the key gets it.
 """
 from __future__ import annotations
 
@@ -18,7 +18,6 @@ class Stream:
     schema: type
     latched: bool = False
     reliable: bool = False
-    recorded: bool = True
 
     def __str__(self) -> str:
         return self.key
@@ -41,9 +40,9 @@ FUSION_SONAR_POINTS = Stream("fusion/sonar_points", m.FlyPopulation)
 # Evolver
 FLIES_POPULATION = Stream("flies/population", m.FlyPopulation)
 # Each frame's first population again, with the frame's grey left image as its side field: the localiser's
-# input (photometric tracking). Only its subscriber receives the image (307 kB at 640×480): sent with
-# flies/population it reached every consumer and cost the pipeline ~1 CPU-ms a frame in Zenoh alone.
-FLIES_WITH_IMAGE = Stream("flies/population/with_image", m.FlyPopulation, recorded=False)
+# input (photometric tracking). Verbatim (``@``), so that only the localiser receives the image (307 kB at
+# 640×480), not every consumer of flies/population nor a recorder or viewer subscribed to ``**``.
+FLIES_WITH_IMAGE = Stream("flies/population/@image", m.FlyPopulation)
 TRACE_EVOLVER = Stream("trace/evolver", m.EvolverTrace)
 # Localiser
 SLAM_POSE = Stream("slam/pose", m.PoseEstimate)
@@ -57,7 +56,3 @@ PLANNER_FIELD = Stream("planner/field", m.HarmonicField)
 STATUS = Stream("status/*", m.Heartbeat)
 HEALTH_PREFIX = "health/"
 
-
-def not_recorded() -> list[Stream]:
-    """The streams a recorder leaves out (``recorded=False``)."""
-    return [v for v in globals().values() if isinstance(v, Stream) and not v.recorded]

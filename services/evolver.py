@@ -5,7 +5,7 @@ counted), the calibration ``stereo/calibration`` (latched), the odometry pose ``
 sonar scan ``fusion/sonar``. Each new frame goes through :class:`common.fly.core.EvolverCore` (motion
 compensation, re-scoring, settling until the population is good enough or ``--settle-ms`` is spent —
 the same step ``flyslam eval`` runs) and its population is published on ``flies/population`` (and, with
-the frame's grey left image, on ``flies/population/with_image`` for the localiser); between
+the frame's grey left image, on ``flies/population/@image`` for the localiser); between
 frames it keeps evolving and republishes at ``--publish-hz``, spending at most ``--duty`` of the wall
 time and only while its CPU over the last second is under ``--cpu-budget`` of a core.
 ``--trace`` publishes each frame's stage times on ``trace/evolver``.
@@ -117,15 +117,17 @@ _COUNTER = {"no calibration": "frames_without_calibration", "bad calibration": "
 
 
 def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -> bool:
-    """Publish a frame's population (``out``: the flies/population and flies/population/with_image
+    """Publish a frame's population (``out``: the flies/population and flies/population/@image
     publishers; the localiser's first) and trace; count and log a refused frame. True when published."""
     if result.population is None:
         node.counters.add(_COUNTER.get(result.reason.split(":")[0], "bad_frames"))
         log.log(logging.DEBUG if result.reason == "no calibration" else logging.WARNING,
                 "frame %d: %s", frame.header.seq, result.reason)
         return False
-    out[1].publish(result.population)
-    out[0].publish(dataclasses.replace(result.population, image=None))
+    pop = result.population       # each publisher stamps its own seq into a header of seq 0: two headers
+    without_image = dataclasses.replace(pop, image=None, header=dataclasses.replace(pop.header))
+    out[1].publish(pop)
+    out[0].publish(without_image)
     node.progress += 1
     node.counters.add("frames_without_odometry", int(result.without_odometry))
     node.rates["settle_generations"] = float(result.generations)

@@ -1,6 +1,6 @@
 """Localiser service (SLAM): registers each newest fly population against a map of keyframe populations.
 
-Takes ``flies/population/with_image`` (latest value: each frame's population with its grey left
+Takes ``flies/population/@image`` (latest value: each frame's population with its grey left
 image), the odometry pose ``fusion/odom`` as prior and the latched
 ``stereo/calibration``; publishes ``slam/pose`` (base_link in map with covariance; the status says when
 a registration was rejected and odometry carried on, or that it is still relocalising) and

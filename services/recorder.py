@@ -1,8 +1,8 @@
 """Recorder service: writes bus keys to an MCAP recording until stopped.
 
 Subscribes once (raw, unvalidated: a recorder keeps what was on the bus) to ``<robot>/**`` and keeps the
-keys a ``--keys`` pattern includes (Zenoh key expressions, common.recording.KeyFilter; never the
-streams common.streams marks ``recorded=False``, which repeat another stream's payload) — one
+keys a ``--keys`` pattern includes (Zenoh key expressions, common.recording.KeyFilter; a verbatim ``@``
+key such as the localiser's ``flies/population/@image`` is never among them) — one
 subscription, because Zenoh may run the callbacks of separate subscriptions concurrently and the
 recording must keep the order of arrival — queues payloads from Zenoh's threads and writes them from
 the main loop, flushing the chunk in progress every ``--flush-s`` seconds so that a SIGKILL loses at
@@ -27,7 +27,6 @@ import sys
 import time
 from pathlib import Path
 
-from common import streams as S
 from common.recording import KeyFilter, RecorderBacklog, open_segment
 from services.base import run_service, service_parser
 
@@ -53,8 +52,7 @@ def build_parser():
 
 
 def body(node, args) -> int:
-    wanted = KeyFilter([node.key(k) for k in args.keys],   # a bad pattern fails before any file is made
-                       exclude=[node.key(s.key) for s in S.not_recorded()])
+    wanted = KeyFilter([node.key(k) for k in args.keys])   # a bad pattern fails before any file is made
     backlog = RecorderBacklog(int(args.max_backlog_mb * 1e6))
     run_config = json.loads(Path(args.run_config).read_text()) if args.run_config else None
     writer = open_segment(args.out, chunk_size=int(args.chunk_mb * 1e6), compression=args.compression)

@@ -4,7 +4,9 @@ Payload bytes are published unchanged on ``<robot>/<stream>`` (the recorded key 
 replaced by ``--robot``), paced by the recorded receive times at ``--rate`` × real time (0 = as fast as
 possible), from ``--start`` to ``--end`` seconds into the recording, optionally looping. By default only
 the source streams are replayed (what a camera, the robot and a simulator publish), so the pipeline
-downstream can run live on them; ``--keys`` chooses others.
+downstream can run live on them; ``--keys`` chooses others (a recorded ``flies/population`` feeds a
+planner or a viewer, not a localiser: that takes ``flies/population/@image``, which carries the frame's
+image and is never recorded; replay the frames through an evolver instead).
 
 A recording of several segments (a restarted recorder's ``recording.1.mcap``, …) replays as one: give
 the base file or the run's folder. A truncated or corrupt segment is replayed up to the damage (then

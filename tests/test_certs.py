@@ -149,3 +149,14 @@ def test_every_peer_listens_so_two_late_peers_hear_each_other_directly(tmp_path,
     finally:
         for s in (b, c):
             s.close()
+
+
+def test_every_stream_of_the_pipeline_passes_the_secured_bus(tmp_path, certs):
+    """A stream the access rules forget is silently lost (the localiser once took a verbatim '@' key,
+    which no wildcard rule covers)."""
+    from common import streams as S
+    commands = {S.PLANNER_CMD_VEL.key, S.PLANNER_TARGET.key}          # the robot's certificate only: above
+    keys = [f"flyslam/{s.key}" for s in vars(S).values()
+            if isinstance(s, S.Stream) and "*" not in s.key and s.key not in commands]
+    got = _deliveries(tmp_path, certs, {"laptop": "laptop"}, keys)
+    assert {k: got.get(("laptop", k), 0) for k in keys} == {k: 20 for k in keys}

@@ -43,7 +43,7 @@ def test_a_killed_localiser_keeps_its_trajectory_and_map_and_resumes_at_once(tmp
         node.subscribe("slam/pose", m.PoseEstimate, lambda p: (lock.acquire(), poses.append((time.monotonic(), p)),
                                                                lock.release()))
         node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(CALIB, 1, 1))
-        pops = node.publisher("flies/population/with_image", reliable=True)
+        pops = node.publisher("flies/population/@image", reliable=True)
         proc = start_module("services.localiser", *args, port=zenoh_port, log_path=tmp_path / "loc1.log")
         try:
             deadline = time.monotonic() + 90

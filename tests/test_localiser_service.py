@@ -26,7 +26,7 @@ def test_localiser_service_publishes_poses_serves_its_map_and_writes_tum(tmp_pat
             node.subscribe("slam/pose", m.PoseEstimate, poses.append)
             node.subscribe("slam/map_to_odom", m.TransformMsg, transforms.append)
             node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
-            pops = node.publisher("flies/population/with_image", reliable=True)
+            pops = node.publisher("flies/population/@image", reliable=True)
             time.sleep(1.5)
             for k in range(8):
                 T_odom_base = planar_pose(0.6 * k, 0.0, 0.0)

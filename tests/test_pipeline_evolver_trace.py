@@ -21,7 +21,7 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
             node.subscribe("status/evolver", m.Heartbeat, heartbeats.append)
             node.subscribe("flies/population", m.FlyPopulation, populations.append)
             node.subscribe("trace/evolver", m.EvolverTrace, traces.append)
-            node.subscribe("flies/population/with_image", m.FlyPopulation, with_image.append)
+            node.subscribe("flies/population/@image", m.FlyPopulation, with_image.append)
             assert wait_until(lambda: heartbeats, 30), "evolver did not come up"
             calib = StereoCalibration.ideal(96, 72)
             node.publisher("stereo/calibration", latched=True).publish(m.calibration_to_msg(calib, 1, 1))
@@ -50,6 +50,8 @@ def test_evolver_traces_each_frame_in_order_and_publishes_within_its_budget(tmp_
             assert {p.source_seq for p in with_image} >= set(range(1, 7))
             assert all(p.image is not None and p.image.shape == (72, 96) for p in with_image)
             assert populations and all(p.image is None for p in populations)
+            seqs = [p.header.seq for p in populations]       # one publisher's count, frames and republishes
+            assert seqs == sorted(set(seqs)), seqs
             assert by_seq[1].reference is None               # first frame: nothing to recover to
             assert all(by_seq[s].reference is not None for s in range(2, 7))
     finally:
