@@ -39,19 +39,18 @@ def build_parser():
 def body(node, args) -> int:
     settings = config_or_exit(PlannerServiceConfig, args)
     core = PlannerCore(config_or_exit(PlannerConfig, args, only=PLANNER_FLAGS, rename=RENAME), settings)
-    # The core keeps only the newest pose, map->odom and sonar points: taken once per cycle, the 30 Hz
-    # streams' other samples stay in Zenoh instead of costing a callback and a decode each.
+    # The core keeps only the newest pose and sonar points: taken once per cycle, the 30 Hz pose stream's
+    # other samples stay in Zenoh instead of costing a callback and a decode each.
     latest = [(node.subscribe_latest(stream, polled=True), handler) for stream, handler in (
-        (S.FUSION_POSE, core.on_pose), (S.SLAM_MAP_TO_ODOM, core.on_map_to_odom),
-        (S.FUSION_SONAR_POINTS, core.on_sonar_points))]
+        (S.FUSION_POSE, core.on_pose), (S.FUSION_SONAR_POINTS, core.on_sonar_points))]
     calibration = node.latched(S.STEREO_CALIBRATION)
     target = None
     if settings.target is not None:
         core.on_target(m.Target(x=settings.target[0], y=settings.target[1], radius_m=settings.target_radius))
     else:
         target = node.latched(S.PLANNER_TARGET, retry_s=float("inf"))   # a target may never come: ask once
-    # A restarted planner takes the map->odom the supervisor latches, or it would wait for the
-    # localiser's next one (none while that is restarting or relocalising too).
+    # map->odom: the newest one, also the one the supervisor latches for a restarted planner (or it would
+    # wait for the localiser's next one: none while that is restarting or relocalising too).
     map_to_odom = node.latched(S.SLAM_MAP_TO_ODOM, retry_s=float("inf"))
     populations = node.subscribe_latest(S.FLIES_POPULATION, polled=True)   # taken once per cycle
     cmd_pub, field_pub = node.publisher(S.PLANNER_CMD_VEL), node.publisher(S.PLANNER_FIELD)
@@ -65,8 +64,9 @@ def body(node, args) -> int:
             msg = subscription.take()
             if msg is not None:
                 handler(msg)
-        if core.map_to_odom is None and map_to_odom.get() is not None:
-            core.on_map_to_odom(map_to_odom.get())
+        newest_map_to_odom = map_to_odom.take()
+        if newest_map_to_odom is not None:
+            core.on_map_to_odom(newest_map_to_odom)
         if calibration.get() is not None:
             with survive(node, "calibration", log):
                 core.on_calibration(calibration.get())
