@@ -196,9 +196,10 @@ def open_session(opts: BusOptions) -> zenoh.Session:
     except BaseException as e:   # a Rust panic reaches Python as pyo3's PanicException, a BaseException
         if type(e).__name__ != "PanicException":
             raise
+        reason = (str(e).splitlines() or [""])[0][:160]
         raise BusConfigError(f"cannot open the Zenoh session: ZENOH_RUNTIME={os.environ['ZENOH_RUNTIME']!r} is "
-                             "not a valid Zenoh runtime configuration (RON, e.g. '(app: (worker_threads: 1))')"
-                             ) from None
+                             f"not a valid Zenoh runtime configuration (RON, e.g. '(app: (worker_threads: 1))'): "
+                             f"{reason}") from None
 
 
 def _hub_endpoint(conf: zenoh.Config) -> tuple[str, int] | None:

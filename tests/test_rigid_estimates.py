@@ -47,7 +47,7 @@ def _nearest_rotation(M: np.ndarray) -> np.ndarray:
 def test_orthonormalised_gives_the_nearest_rotation_for_rounding_and_for_worse():
     from common.geometry import make_transform, orthonormalised, so3_exp
     rng = np.random.default_rng(3)
-    for scale in (0.0, 1e-12, 1e-9, 5e-7, 1e-4, 0.3):      # rounding, up to a sheared matrix
+    for scale in (0.0, 1e-12, 1e-9, 3e-8, 5e-7, 1e-4, 0.3):      # rounding, up to a sheared matrix
         for _ in range(20):
             M = so3_exp(rng.normal(0, 1.0, 3)) @ (np.eye(3) + rng.normal(0, scale, (3, 3)))
             T = make_transform(M, rng.normal(0, 5.0, 3))
