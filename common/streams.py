@@ -55,4 +55,3 @@ PLANNER_FIELD = Stream("planner/field", m.HarmonicField)
 # Health (every Node)
 STATUS = Stream("status/*", m.Heartbeat)
 HEALTH_PREFIX = "health/"
-

@@ -57,7 +57,7 @@ def body(node, args) -> int:
     node.subscribe(S.FUSION_ODOM, callback=lambda msg: core.on_odometry(msg.header.stamp_ns, m.transform_of(msg)))
     node.subscribe(S.FUSION_SONAR, callback=core.on_sonar)
     frames = node.subscribe_latest(S.STEREO_FRAME)
-    out = node.publisher(S.FLIES_POPULATION), node.publisher(S.FLIES_WITH_IMAGE)
+    out, with_image = node.publisher(S.FLIES_POPULATION), node.publisher(S.FLIES_WITH_IMAGE)
     trace = node.publisher(S.TRACE_EVOLVER) if args.trace else None
     governor = run.governor()
     last_publish, rest_until, window = 0.0, 0.0, (time.monotonic(), 0)
@@ -80,7 +80,8 @@ def body(node, args) -> int:
             with survive(node, "frame", log), governor.work():
                 if calibration.get() is not None:
                     core.on_calibration(calibration.get())
-                if publish_frame(node, core.on_frame(frame, settle_scale=governor.settle_scale()), frame, out, trace):
+                result = core.on_frame(frame, settle_scale=governor.settle_scale())
+                if publish_frame(node, result, frame, out, with_image, trace):
                     last_publish = time.monotonic()
                     newest = (last_publish, core.generation)
                     frames_span = (frames_span[0] if frames_span else newest, newest)
@@ -91,7 +92,7 @@ def body(node, args) -> int:
             with survive(node, "evolve", log), governor.work():
                 core.step()
                 if time.monotonic() - last_publish >= 1.0 / run.publish_hz:
-                    out[0].publish(core.population())
+                    out.publish(core.population())
                     last_publish = time.monotonic()
             busy = time.monotonic() - t0
             if run.duty < 1.0:
@@ -116,9 +117,10 @@ _COUNTER = {"no calibration": "frames_without_calibration", "bad calibration": "
             "bad frame": "bad_frames"}
 
 
-def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -> bool:
-    """Publish a frame's population (``out``: the flies/population and flies/population/@image
-    publishers; the localiser's first) and trace; count and log a refused frame. True when published."""
+def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, with_image, trace) -> bool:
+    """Publish a frame's population on ``with_image`` (flies/population/@image, the localiser's: first)
+    and, without its image, on ``out`` (flies/population), and its trace; count and log a refused frame.
+    True when published."""
     if result.population is None:
         node.counters.add(_COUNTER.get(result.reason.split(":")[0], "bad_frames"))
         log.log(logging.DEBUG if result.reason == "no calibration" else logging.WARNING,
@@ -126,8 +128,8 @@ def publish_frame(node, result: FrameResult, frame: m.StereoFrame, out, trace) -
         return False
     pop = result.population       # each publisher stamps its own seq into a header of seq 0: two headers
     without_image = dataclasses.replace(pop, image=None, header=dataclasses.replace(pop.header))
-    out[1].publish(pop)
-    out[0].publish(without_image)
+    with_image.publish(pop)
+    out.publish(without_image)
     node.progress += 1
     node.counters.add("frames_without_odometry", int(result.without_odometry))
     node.rates["settle_generations"] = float(result.generations)

@@ -115,8 +115,9 @@ def test_rejected_payloads_are_counted_not_raised(zenoh_port):
 
 
 def test_a_populations_image_reaches_subscribers_beside_the_payload_and_stays_out_of_raw_payloads(zenoh_port):
-    """The grey image of a population is a side field: typed subscribers (the localiser, on flies/population/@image) get it, a raw
-    subscriber (the recorder) gets the payload without it, 300 kB lighter per frame."""
+    """The grey image of a population is a side field: typed subscribers (the localiser, on
+    flies/population/@image) get it, a raw subscriber (the recorder) gets the payload without it, 300 kB
+    lighter per frame."""
     import numpy as np
     from common import messages as m
     opts = BusOptions(hub=hub(zenoh_port))
