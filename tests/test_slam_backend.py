@@ -113,6 +113,29 @@ def test_a_saved_map_reloads_and_a_new_run_registers_against_it(tmp_path):
     assert second.trajectory()[0].size == len(poses)
 
 
+def test_a_correction_of_the_keyframes_bends_the_trajectory_without_a_step_at_a_keyframe():
+    """The corrected trajectory follows the graph's keyframes smoothly: when the graph moves the later
+    keyframes 0.1 m aside (as a loop closure does, a little more at each keyframe), the estimates made
+    before the first moved keyframe lean over towards it instead of the whole 0.1 m landing between two
+    consecutive poses where one keyframe hands over to the next."""
+    rng = np.random.default_rng(4)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, loop_closure=False))
+    poses = lap()[:40]                        # 8 m straight, 0.2 m a pose
+    drive(loc, ring_points(rng, 20000), poses, rng)
+    stamps, before = loc.trajectory()
+    kfs = loc.map_keyframes()
+    assert len(kfs) >= 4 and len(stamps) == len(poses)
+    moved = kfs[len(kfs) // 2].id
+    for kf in kfs:
+        if kf.id >= moved:
+            kf.T_map_base = planar_pose(0.0, 0.1, 0.0) @ kf.T_map_base
+    _, after = loc.trajectory()
+    shift = after[:, 1, 3] - before[:, 1, 3]
+    assert abs(shift[0]) < 1e-9 and abs(shift[-1] - 0.1) < 1e-9
+    assert np.max(np.abs(np.diff(shift))) < 0.04     # ~0.1 m over the 7 or so poses between keyframes
+    assert np.all(np.diff(shift) > -1e-9)           # and never back
+
+
 def test_a_pose_graph_that_cannot_be_solved_does_not_stop_the_localiser(monkeypatch):
     """GTSAM refusing a system (an indeterminate one, from a front end that diverged) costs the back-end's
     correction, never the localiser: every population still gets a pose and the failures are counted."""

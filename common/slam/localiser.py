@@ -154,6 +154,11 @@ class FlyLocaliser:
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
+        # keyframe id -> the keyframe made next on the same run of estimates: (next keyframe, its pose
+        # relative to this one when made, first stamp of that run, stamp it was made); trajectory()
+        # blends the two keyframes' corrections over the estimates between them
+        self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, int, int]] = {}
+        self._chain_start_ns = -1        # a relocalisation starts a new run of estimates
         self._pool_list: list[Keyframe] | None = None
         # the old keyframe the newest accepted loop closure or relocalisation tied the pose to (see
         # _tracking_mask); None: only the recent keyframes track
@@ -553,10 +558,27 @@ class FlyLocaliser:
         self._map_cache = self._visible_cache = None
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """(stamps, T_map_base (N, 4, 4)) of every estimate, each re-expressed in the current pose of the
-        keyframe that was newest when it was made (after loop closures: the corrected trajectory)."""
+        """(stamps, T_map_base (N, 4, 4)) of every estimate, re-expressed in the current (optimised) poses
+        of the keyframes around it: the one newest when it was made and the next one made on the same
+        run of estimates, blended by time between the two.  After a loop closure
+        this is the corrected trajectory, with no step where one keyframe's correction hands over to
+        the next's.  An estimate with no next keyframe (the newest, or before a relocalisation) follows
+        its own keyframe alone."""
         stamps = np.array([h[0] for h in self._history], np.int64)
-        poses = [T if kf is None else kf.T_map_base @ T for _, kf, T in self._history]
+        poses = []
+        for stamp, kf, T in self._history:
+            if kf is None:
+                poses.append(T)
+                continue
+            T_own = kf.T_map_base @ T
+            nxt = self._next_in_chain.get(kf.id)
+            if nxt is None or stamp < nxt[2] or nxt[3] <= nxt[2]:
+                poses.append(T_own)
+                continue
+            kf_next, T_kf_next, start_ns, next_ns = nxt
+            T_via_next = kf_next.T_map_base @ invert(T_kf_next) @ T
+            share = min(1.0, (stamp - start_ns) / (next_ns - start_ns))
+            poses.append(T_own @ scaled_motion(invert(T_own) @ T_via_next, share))
         return stamps, np.array(poses).reshape(-1, 4, 4)
 
     def relocalised(self, stamp_ns: int, T_map_base: np.ndarray, T_odom_base: np.ndarray | None = None) -> None:
@@ -564,6 +586,7 @@ class FlyLocaliser:
         motion model forgets its velocity, the tracking reference is dropped (the next update builds one
         at this pose) and map→odom is re-anchored when odometry is known.  The map is not touched."""
         T_map_base = orthonormalised(np.asarray(T_map_base, dtype=float))
+        self._chain_start_ns = int(stamp_ns)
         self._track = _Tracking()
         self._track_update(stamp_ns, T_map_base)
         self._reference = None
@@ -677,8 +700,12 @@ class FlyLocaliser:
             # (the coverage test projects the whole map: asked last, and only when it decides)
             if (may_add and len(points) >= c.min_flies and self._needs_keyframe(T_map_base)
                     and (registered or far or self._local_keyframes(T_map_base)[1] < c.min_view_coverage)):
+                prev = self.keyframes[-1] if self.keyframes else None
                 kf = self._add_keyframe(stamp_ns, T_map_base, points, fit,
                                         view_flies[2] if view_flies is not None else None)
+                if prev is not None:
+                    self._next_in_chain[prev.id] = (kf, invert(prev.T_map_base) @ T_map_base,
+                                                    max(prev.stamp_ns, self._chain_start_ns), stamp_ns)
                 added = True
                 if self.backend is not None:
                     C = self._graph_keyframe(kf, list(links) if registered else [], cov if registered else None)
