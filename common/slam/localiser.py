@@ -560,10 +560,9 @@ class FlyLocaliser:
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps, T_map_base (N, 4, 4)) of every estimate, re-expressed in the current (optimised) poses
         of the keyframes around it: the one newest when it was made and the next one made on the same
-        run of estimates, blended by time between the two.  After a loop closure
-        this is the corrected trajectory, with no step where one keyframe's correction hands over to
-        the next's.  An estimate with no next keyframe (the newest, or before a relocalisation) follows
-        its own keyframe alone."""
+        run of estimates, blended by time between the two.  After a loop closure this is the corrected
+        trajectory, with no step where one keyframe's correction hands over to the next's.  An estimate
+        with no next keyframe (the newest, or before a relocalisation) follows its own keyframe alone."""
         stamps = np.array([h[0] for h in self._history], np.int64)
         poses = []
         for stamp, kf, T in self._history:
