@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from common.fly.selection import fittest
 from common.geometry import (invert, orthonormalised, planar_from_transform, planar_pose, scaled_motion, so3_log,
@@ -99,6 +100,24 @@ def voxel_thin(points: np.ndarray, fitness: np.ndarray, voxel: float):
     return points[keep], fitness[keep]
 
 
+def _blend(A: np.ndarray, B: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """Poses (N, 4, 4) ``share`` of the way from A to B (rotation on its geodesic, translation in A's
+    frame scaled: :func:`common.geometry.scaled_motion`, batched); A where share is 0."""
+    out = A.copy()
+    k = np.flatnonzero(share > 0)
+    if len(k) == 0:
+        return out
+    Ak, Bk, s = A[k], B[k], share[k]
+    R_ab = np.swapaxes(Ak[:, :3, :3], 1, 2) @ Bk[:, :3, :3]
+    t_ab = np.einsum("nji,nj->ni", Ak[:, :3, :3], Bk[:, :3, 3] - Ak[:, :3, 3])
+    step = np.zeros((len(k), 4, 4))
+    step[:, :3, :3] = Rotation.from_rotvec(Rotation.from_matrix(R_ab).as_rotvec() * s[:, None]).as_matrix()
+    step[:, :3, 3] = t_ab * s[:, None]
+    step[:, 3, 3] = 1.0
+    out[k] = Ak @ step
+    return out
+
+
 class FlyLocaliser:
     def __init__(self, T_base_camera: np.ndarray, config: LocaliserConfig | None = None, seed: int = 0,
                  calibration=None):
@@ -154,9 +173,9 @@ class FlyLocaliser:
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
-        # keyframe id -> the keyframe made next on the same run of estimates: (next keyframe, its pose
-        # relative to this one when made, first stamp of that run, stamp it was made); trajectory()
-        # blends the two keyframes' corrections over the estimates between them
+        # keyframe id -> the keyframe made next on the same run of estimates: (next keyframe, this one's
+        # pose relative to it when it was made, first stamp of that run, stamp it was made);
+        # trajectory() blends the two keyframes' corrections over the estimates between them
         self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, int, int]] = {}
         self._chain_start_ns = -1        # a relocalisation starts a new run of estimates
         self._pool_list: list[Keyframe] | None = None
@@ -562,23 +581,32 @@ class FlyLocaliser:
         of the keyframes around it: the one newest when it was made and the next one made on the same
         run of estimates, blended by time between the two.  After a loop closure this is the corrected
         trajectory, with no step where one keyframe's correction hands over to the next's.  An estimate
-        with no next keyframe (the newest, or before a relocalisation) follows its own keyframe alone."""
-        stamps = np.array([h[0] for h in self._history], np.int64)
-        poses = []
-        for stamp, kf, T in self._history:
+        with no next keyframe (the newest, or before a relocalisation) follows its own keyframe alone.
+        Vectorised per keyframe: the live localiser rewrites the whole run every few seconds."""
+        history = self._history
+        stamps = np.array([h[0] for h in history], np.int64)
+        rel = np.array([h[2] for h in history], dtype=float).reshape(-1, 4, 4)
+        anchors = [h[1] for h in history]
+        ids = np.array([-1 if kf is None else kf.id for kf in anchors], np.int64)
+        firsts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.zeros(0, np.int64)
+        # per run of estimates on one keyframe: that keyframe's pose, the pose the next keyframe gives
+        # them, and the stamps the blend runs between (none when start >= end)
+        own_kf, via_kf = np.tile(np.eye(4), (len(firsts), 1, 1)), np.tile(np.eye(4), (len(firsts), 1, 1))
+        start, end = np.zeros(len(firsts), np.int64), np.zeros(len(firsts), np.int64)
+        for g, a in enumerate(firsts):
+            kf = anchors[a]
             if kf is None:
-                poses.append(T)
                 continue
-            T_own = kf.T_map_base @ T
+            own_kf[g] = via_kf[g] = kf.T_map_base
             nxt = self._next_in_chain.get(kf.id)
-            if nxt is None or stamp < nxt[2] or nxt[3] <= nxt[2]:
-                poses.append(T_own)
-                continue
-            kf_next, T_kf_next, start_ns, next_ns = nxt
-            T_via_next = kf_next.T_map_base @ invert(T_kf_next) @ T
-            share = min(1.0, (stamp - start_ns) / (next_ns - start_ns))
-            poses.append(T_own @ scaled_motion(invert(T_own) @ T_via_next, share))
-        return stamps, np.array(poses).reshape(-1, 4, 4)
+            if nxt is not None:
+                via_kf[g] = nxt[0].T_map_base @ nxt[1]
+                start[g], end[g] = nxt[2], nxt[3]
+        run = np.repeat(np.arange(len(firsts)), np.diff(np.r_[firsts, len(ids)]))
+        span = (end - start)[run]
+        share = np.clip((stamps - start[run]) / np.where(span > 0, span, 1.0), 0.0, 1.0) * (span > 0)
+        own, via = own_kf[run] @ rel, via_kf[run] @ rel
+        return stamps, _blend(own, via, share)
 
     def relocalised(self, stamp_ns: int, T_map_base: np.ndarray, T_odom_base: np.ndarray | None = None) -> None:
         """Restart tracking from a pose found by a global search over the map (relocalisation): the
@@ -703,7 +731,7 @@ class FlyLocaliser:
                 kf = self._add_keyframe(stamp_ns, T_map_base, points, fit,
                                         view_flies[2] if view_flies is not None else None)
                 if prev is not None:
-                    self._next_in_chain[prev.id] = (kf, invert(prev.T_map_base) @ T_map_base,
+                    self._next_in_chain[prev.id] = (kf, invert(invert(prev.T_map_base) @ T_map_base),
                                                     max(prev.stamp_ns, self._chain_start_ns), stamp_ns)
                 added = True
                 if self.backend is not None:
