@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.geometry import invert, planar_from_transform, planar_pose
+from common.geometry import invert, planar_from_transform, planar_pose, scaled_motion
 from common.slam import FlyLocaliser, LocaliserConfig
 from common.slam.mapfile import load_map, save_map
 from tests.test_slam import T_BASE_CAMERA, seen_from
@@ -43,9 +43,10 @@ def lap():
     return poses
 
 
-def drive(loc, world, poses, rng, yaw_scale=1.0, dist_scale=1.0, yaw_per_m=0.0):
+def drive(loc, world, poses, rng, yaw_scale=1.0, dist_scale=1.0, yaw_per_m=0.0, estimates=None):
     """Feed one population per pose with odometry integrating the true steps with scale errors; returns
-    (first estimate, final estimate, final odometry pose) — odometry starts at the first true pose."""
+    (first estimate, final estimate, final odometry pose) — odometry starts at the first true pose.
+    ``estimates``: a list every estimate is appended to."""
     T_odom = planar_pose(*poses[0])
     prev = poses[0]
     est = first = None
@@ -59,6 +60,8 @@ def drive(loc, world, poses, rng, yaw_scale=1.0, dist_scale=1.0, yaw_per_m=0.0):
         cam = cam + rng.normal(0, 0.01, cam.shape)          # 1 cm of fly noise
         est = loc.update(k * 500_000_000, cam, np.ones(len(cam)), T_odom)
         first = first or est
+        if estimates is not None:
+            estimates.append(est)
     return first, est, T_odom
 
 
@@ -114,26 +117,64 @@ def test_a_saved_map_reloads_and_a_new_run_registers_against_it(tmp_path):
 
 
 def test_a_correction_of_the_keyframes_bends_the_trajectory_without_a_step_at_a_keyframe():
-    """The corrected trajectory follows the graph's keyframes smoothly: when the graph moves the later
-    keyframes 0.1 m aside (as a loop closure does, a little more at each keyframe), the estimates made
-    before the first moved keyframe lean over towards it instead of the whole 0.1 m landing between two
-    consecutive poses where one keyframe hands over to the next."""
+    """The corrected trajectory follows the keyframes smoothly: when the later keyframes are turned 5°
+    about the first of them (as a graph correction does), the estimates made before it lean over
+    towards it, by the share of the time between the two keyframes they were made at, instead of the
+    whole correction landing between two consecutive poses where one keyframe hands over to the next.
+    Without the pose graph nothing else moves the keyframes, so the trajectory starts as published."""
     rng = np.random.default_rng(4)
-    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, loop_closure=False))
-    poses = lap()[:40]                        # 8 m straight, 0.2 m a pose
-    drive(loc, ring_points(rng, 20000), poses, rng)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, pose_graph=False))
+    published = []
+    drive(loc, ring_points(rng, 20000), lap()[:40], rng, estimates=published)   # 8 m straight
     stamps, before = loc.trajectory()
+    assert np.allclose(before, [e.T_map_base for e in published], atol=1e-9)
     kfs = loc.map_keyframes()
-    assert len(kfs) >= 4 and len(stamps) == len(poses)
-    moved = kfs[len(kfs) // 2].id
+    assert len(kfs) >= 4
+    prev, moved = kfs[len(kfs) // 2 - 1], kfs[len(kfs) // 2]
+    pivot = planar_pose(*moved.T_map_base[:2, 3], 0.0)
+    D = pivot @ planar_pose(0.0, 0.0, np.deg2rad(5.0)) @ invert(pivot)
     for kf in kfs:
-        if kf.id >= moved:
-            kf.T_map_base = planar_pose(0.0, 0.1, 0.0) @ kf.T_map_base
+        if kf.id >= moved.id:
+            kf.T_map_base = D @ kf.T_map_base
+    _, after = loc.trajectory()
+    assert np.allclose(after[stamps <= prev.stamp_ns], before[stamps <= prev.stamp_ns], atol=1e-12)
+    assert np.allclose(after[stamps >= moved.stamp_ns], D @ before[stamps >= moved.stamp_ns], atol=1e-9)
+    between = np.flatnonzero((stamps > prev.stamp_ns) & (stamps < moved.stamp_ns))
+    assert len(between) >= 3
+    for i in between:
+        share = (stamps[i] - prev.stamp_ns) / (moved.stamp_ns - prev.stamp_ns)
+        expected = before[i] @ scaled_motion(invert(before[i]) @ D @ before[i], share)
+        assert np.allclose(after[i], expected, atol=1e-9)
+    turned = np.rad2deg([planar_from_transform(T)[2] for T in after]) - np.rad2deg(
+        [planar_from_transform(T)[2] for T in before])
+    assert np.all(np.diff(turned) >= -1e-9) and np.max(np.diff(turned)) < 2.0     # 5° over several poses
+
+
+def test_estimates_before_a_relocalisation_do_not_follow_the_keyframes_made_after_it():
+    """A relocalisation starts a new run of estimates: keyframes made after it, corrected by the graph,
+    move the estimates made since the relocalisation (those before the first new keyframe by their share
+    of the time to it) and none made before it."""
+    rng = np.random.default_rng(5)
+    world = ring_points(rng, 20000)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, loop_closure=False))
+    poses = lap()[:40]
+    for k, p in enumerate(poses):
+        if k == 20:
+            loc.relocalised(k * 500_000_000, planar_pose(*p), planar_pose(*p))
+        cam = seen_from(planar_pose(*p), world)
+        cam = cam[rng.random(len(cam)) < 0.5]
+        loc.update(k * 500_000_000, cam, np.ones(len(cam)), planar_pose(*p))
+    stamps, before = loc.trajectory()
+    after_reloc = [kf for kf in loc.map_keyframes() if kf.stamp_ns > 20 * 500_000_000]
+    assert after_reloc
+    for kf in after_reloc:
+        kf.T_map_base = planar_pose(0.0, 0.1, 0.0) @ kf.T_map_base
     _, after = loc.trajectory()
     shift = after[:, 1, 3] - before[:, 1, 3]
-    assert abs(shift[0]) < 1e-9 and abs(shift[-1] - 0.1) < 1e-9
-    assert np.max(np.abs(np.diff(shift))) < 0.04     # ~0.1 m over the 7 or so poses between keyframes
-    assert np.all(np.diff(shift) > -1e-9)           # and never back
+    assert np.all(np.abs(shift[stamps <= 20 * 500_000_000]) < 1e-12)
+    assert np.allclose(shift[stamps >= after_reloc[0].stamp_ns], 0.1)
+    leaning = shift[(stamps > 20 * 500_000_000) & (stamps < after_reloc[0].stamp_ns)]
+    assert len(leaning) >= 2 and np.all((leaning > 0) & (leaning < 0.1)) and np.all(np.diff(leaning) > 0)
 
 
 def test_a_pose_graph_that_cannot_be_solved_does_not_stop_the_localiser(monkeypatch):

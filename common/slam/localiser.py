@@ -173,11 +173,13 @@ class FlyLocaliser:
         # every estimate as (stamp, anchor keyframe, pose relative to it): trajectory() re-expresses the
         # whole run in the keyframes' current (optimised) poses
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
-        # keyframe id -> the keyframe made next on the same run of estimates: (next keyframe, this one's
-        # pose relative to it when it was made, first stamp of that run, stamp it was made);
-        # trajectory() blends the two keyframes' corrections over the estimates between them
+        # keyframe id -> the keyframe made next on the same run of estimates (a run ends at a
+        # relocalisation or a loaded map): (next keyframe, this one's pose relative to it when it was made,
+        # stamp of this one's first estimate in that run, stamp of the next one); trajectory() blends the
+        # two keyframes' corrections over the estimates between those stamps
         self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, int, int]] = {}
-        self._chain_start_ns = -1        # a relocalisation starts a new run of estimates
+        self._anchor_since: tuple[int, int] | None = None   # (newest keyframe id, stamp of its first
+                                                            # estimate since the run began)
         self._pool_list: list[Keyframe] | None = None
         # the old keyframe the newest accepted loop closure or relocalisation tied the pose to (see
         # _tracking_mask); None: only the recent keyframes track
@@ -574,46 +576,48 @@ class FlyLocaliser:
             self._optimise_graph(kfs[-1].id)     # unsolvable: the saved poses stand
         self._next_id = max((k.id for k in kfs), default=-1) + 1
         self.map_loaded = bool(kfs)
+        self._anchor_since = None        # (the saved keyframes' stamps are another run's clock)
         self._map_cache = self._visible_cache = None
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps, T_map_base (N, 4, 4)) of every estimate, re-expressed in the current (optimised) poses
         of the keyframes around it: the one newest when it was made and the next one made on the same
         run of estimates, blended by time between the two.  After a loop closure this is the corrected
-        trajectory, with no step where one keyframe's correction hands over to the next's.  An estimate
-        with no next keyframe (the newest, or before a relocalisation) follows its own keyframe alone.
-        Vectorised per keyframe: the live localiser rewrites the whole run every few seconds."""
-        history = self._history
-        stamps = np.array([h[0] for h in history], np.int64)
-        rel = np.array([h[2] for h in history], dtype=float).reshape(-1, 4, 4)
-        anchors = [h[1] for h in history]
+        trajectory, with no step where one keyframe's correction hands over to the next's.  A run ends
+        at a relocalisation or a loaded map: no estimate follows a keyframe made after its run, and the
+        newest estimates follow their keyframe alone.  Vectorised per keyframe: the live localiser
+        rewrites the whole trajectory every few seconds."""
+        if not self._history:
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        stamp_list, anchors, rel_list = zip(*self._history)
+        stamps = np.array(stamp_list, np.int64)
+        rel = np.array(rel_list, dtype=float)
         ids = np.array([-1 if kf is None else kf.id for kf in anchors], np.int64)
-        firsts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.zeros(0, np.int64)
-        # per run of estimates on one keyframe: that keyframe's pose, the pose the next keyframe gives
-        # them, and the stamps the blend runs between (none when start >= end)
+        firsts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+        # per group of consecutive estimates on one keyframe: that keyframe's pose, the pose the next
+        # keyframe gives them, and the stamps the blend goes between (none when start >= end)
         own_kf, via_kf = np.tile(np.eye(4), (len(firsts), 1, 1)), np.tile(np.eye(4), (len(firsts), 1, 1))
         start, end = np.zeros(len(firsts), np.int64), np.zeros(len(firsts), np.int64)
-        for g, a in enumerate(firsts):
-            kf = anchors[a]
+        for g, first in enumerate(firsts):
+            kf = anchors[first]
             if kf is None:
                 continue
             own_kf[g] = via_kf[g] = kf.T_map_base
-            nxt = self._next_in_chain.get(kf.id)
-            if nxt is not None:
-                via_kf[g] = nxt[0].T_map_base @ nxt[1]
-                start[g], end[g] = nxt[2], nxt[3]
-        run = np.repeat(np.arange(len(firsts)), np.diff(np.r_[firsts, len(ids)]))
-        span = (end - start)[run]
-        share = np.clip((stamps - start[run]) / np.where(span > 0, span, 1.0), 0.0, 1.0) * (span > 0)
-        own, via = own_kf[run] @ rel, via_kf[run] @ rel
-        return stamps, _blend(own, via, share)
+            if kf.id in self._next_in_chain:
+                kf_next, T_next_kf, start[g], end[g] = self._next_in_chain[kf.id]
+                via_kf[g] = kf_next.T_map_base @ T_next_kf
+        group = np.repeat(np.arange(len(firsts)), np.diff(np.r_[firsts, len(ids)]))
+        span = (end - start)[group]
+        share = np.clip((stamps - start[group]) / np.where(span > 0, span, 1.0), 0.0, 1.0) * (span > 0)
+        return stamps, _blend(own_kf[group] @ rel, via_kf[group] @ rel, share)
 
     def relocalised(self, stamp_ns: int, T_map_base: np.ndarray, T_odom_base: np.ndarray | None = None) -> None:
         """Restart tracking from a pose found by a global search over the map (relocalisation): the
         motion model forgets its velocity, the tracking reference is dropped (the next update builds one
-        at this pose) and map→odom is re-anchored when odometry is known.  The map is not touched."""
+        at this pose) and map→odom is re-anchored when odometry is known.  The map is not touched; the
+        trajectory starts a new run of estimates (see :meth:`trajectory`)."""
         T_map_base = orthonormalised(np.asarray(T_map_base, dtype=float))
-        self._chain_start_ns = int(stamp_ns)
+        self._anchor_since = None
         self._track = _Tracking()
         self._track_update(stamp_ns, T_map_base)
         self._reference = None
@@ -731,8 +735,10 @@ class FlyLocaliser:
                 kf = self._add_keyframe(stamp_ns, T_map_base, points, fit,
                                         view_flies[2] if view_flies is not None else None)
                 if prev is not None:
-                    self._next_in_chain[prev.id] = (kf, invert(invert(prev.T_map_base) @ T_map_base),
-                                                    max(prev.stamp_ns, self._chain_start_ns), stamp_ns)
+                    since = self._anchor_since
+                    self._next_in_chain[prev.id] = (
+                        kf, invert(T_map_base) @ prev.T_map_base,
+                        since[1] if since is not None and since[0] == prev.id else stamp_ns, stamp_ns)
                 added = True
                 if self.backend is not None:
                     C = self._graph_keyframe(kf, list(links) if registered else [], cov if registered else None)
@@ -753,6 +759,8 @@ class FlyLocaliser:
                 self._updates_since_fix = 0 if registered else self._updates_since_fix + 1
                 anchor = self.keyframes[-1]       # the trajectory starts with the map
                 self._history.append((stamp_ns, anchor, invert(anchor.T_map_base) @ T_map_base))
+                if self._anchor_since is None or self._anchor_since[0] != anchor.id:
+                    self._anchor_since = (anchor.id, stamp_ns)
             return Estimate(stamp_ns, T_map_base, self.T_map_odom.copy(), cov, status, registered, added, delta)
 
         def fixed(T_map_base, cov, delta=float("nan"), links=(), may_add=True):
