@@ -119,8 +119,9 @@ def test_a_saved_map_reloads_and_a_new_run_registers_against_it(tmp_path):
 def test_a_correction_of_the_keyframes_bends_the_trajectory_without_a_step_at_a_keyframe():
     """The corrected trajectory follows the keyframes smoothly: when the later keyframes are turned 5°
     about the first of them (as a graph correction does), the estimates made before it lean over
-    towards it, by the share of the time between the two keyframes they were made at, instead of the
-    whole correction landing between two consecutive poses where one keyframe hands over to the next.
+    towards it, by the share of the way between the two keyframes they had come (metres over
+    keyframe_distance_m plus angle over keyframe_angle_rad, step by step), instead of the whole
+    correction landing between two consecutive poses where one keyframe hands over to the next.
     Without the pose graph nothing else moves the keyframes, so the trajectory starts as published."""
     rng = np.random.default_rng(4)
     loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, pose_graph=False))
@@ -141,13 +142,42 @@ def test_a_correction_of_the_keyframes_bends_the_trajectory_without_a_step_at_a_
     assert np.allclose(after[stamps >= moved.stamp_ns], D @ before[stamps >= moved.stamp_ns], atol=1e-9)
     between = np.flatnonzero((stamps > prev.stamp_ns) & (stamps < moved.stamp_ns))
     assert len(between) >= 3
+
+    def way(k):          # from estimate k - 1 to estimate k, in keyframe spacings
+        x, y, yaw = planar_from_transform(invert(before[k - 1]) @ before[k])
+        return np.hypot(x, y) / loc.config.keyframe_distance_m + abs(yaw) / loc.config.keyframe_angle_rad
+
+    whole = sum(way(k) for k in range(between[0], between[-1] + 2))     # to the moved keyframe's estimate
     for i in between:
-        share = (stamps[i] - prev.stamp_ns) / (moved.stamp_ns - prev.stamp_ns)
+        share = sum(way(k) for k in range(between[0], i + 1)) / whole
         expected = before[i] @ scaled_motion(invert(before[i]) @ D @ before[i], share)
         assert np.allclose(after[i], expected, atol=1e-9)
     turned = np.rad2deg([planar_from_transform(T)[2] for T in after]) - np.rad2deg(
         [planar_from_transform(T)[2] for T in before])
     assert np.all(np.diff(turned) >= -1e-9) and np.max(np.diff(turned)) < 2.0     # 5° over several poses
+
+
+def test_a_robot_that_waits_between_keyframes_hardly_slides_when_they_are_corrected():
+    """The blend goes by the way come, not the time: while the robot waits for 20 frames between two
+    keyframes its poses keep nearly the same share of the correction (the estimates' jitter is all
+    that moves them); by time they would slide 7 cm of a 10 cm correction while it stood still."""
+    rng = np.random.default_rng(6)
+    loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, pose_graph=False))
+    straight = lap()[:40]
+    poses = straight[:13] + [straight[12]] * 20 + straight[13:]      # 20 frames waiting at 2.6 m
+    drive(loc, ring_points(rng, 20000), poses, rng)
+    stamps, before = loc.trajectory()
+    waiting = (stamps >= 12 * 500_000_000) & (stamps < 33 * 500_000_000)
+    anchors = {kf.id for (_, kf, _), w in zip(loc._history, waiting) if w}
+    assert len(anchors) == 1, "the robot waits between two keyframes"
+    for kf in loc.map_keyframes():
+        if kf.id > min(anchors):
+            kf.T_map_base = planar_pose(0.0, 0.1, 0.0) @ kf.T_map_base
+    _, after = loc.trajectory()
+    shift = after[:, 1, 3] - before[:, 1, 3]
+    assert 0.0 < shift[waiting][0] < 0.1
+    assert np.ptp(shift[waiting]) < 0.02
+    assert np.all(np.diff(shift[:np.flatnonzero(waiting)[-1] + 1]) > -1e-9)
 
 
 def test_estimates_before_a_relocalisation_do_not_follow_the_keyframes_made_after_it():

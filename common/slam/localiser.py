@@ -100,6 +100,15 @@ def voxel_thin(points: np.ndarray, fitness: np.ndarray, voxel: float):
     return points[keep], fitness[keep]
 
 
+def _between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A⁻¹·B for rigid transforms (N, 4, 4), batched."""
+    out = np.zeros(np.broadcast_shapes(A.shape, B.shape))
+    out[:, :3, :3] = np.swapaxes(A[:, :3, :3], 1, 2) @ B[:, :3, :3]
+    out[:, :3, 3] = np.einsum("nji,nj->ni", A[:, :3, :3], B[:, :3, 3] - A[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def _blend(A: np.ndarray, B: np.ndarray, share: np.ndarray) -> np.ndarray:
     """Poses (N, 4, 4) ``share`` of the way from A to B (rotation on its geodesic, translation in A's
     frame scaled: :func:`common.geometry.scaled_motion`, batched); A where share is 0."""
@@ -107,14 +116,11 @@ def _blend(A: np.ndarray, B: np.ndarray, share: np.ndarray) -> np.ndarray:
     k = np.flatnonzero(share > 0)
     if len(k) == 0:
         return out
-    Ak, Bk, s = A[k], B[k], share[k]
-    R_ab = np.swapaxes(Ak[:, :3, :3], 1, 2) @ Bk[:, :3, :3]
-    t_ab = np.einsum("nji,nj->ni", Ak[:, :3, :3], Bk[:, :3, 3] - Ak[:, :3, 3])
-    step = np.zeros((len(k), 4, 4))
-    step[:, :3, :3] = Rotation.from_rotvec(Rotation.from_matrix(R_ab).as_rotvec() * s[:, None]).as_matrix()
-    step[:, :3, 3] = t_ab * s[:, None]
-    step[:, 3, 3] = 1.0
-    out[k] = Ak @ step
+    step = _between(A[k], B[k])
+    rotvec = Rotation.from_matrix(step[:, :3, :3]).as_rotvec() * share[k, None]
+    step[:, :3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    step[:, :3, 3] *= share[k, None]
+    out[k] = A[k] @ step
     return out
 
 
@@ -175,9 +181,9 @@ class FlyLocaliser:
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
         # keyframe id -> the keyframe made next on the same run of estimates (a run ends at a
         # relocalisation or a loaded map): (next keyframe, this one's pose relative to it when it was made,
-        # stamp of this one's first estimate in that run, stamp of the next one); trajectory() blends the
-        # two keyframes' corrections over the estimates between those stamps
-        self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, int, int]] = {}
+        # and the inverse, stamp of this one's first estimate in that run); trajectory() blends the two
+        # keyframes' corrections over the estimates from that stamp to the next keyframe
+        self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, np.ndarray, int]] = {}
         self._anchor_since: tuple[int, int] | None = None   # (newest keyframe id, stamp of its first
                                                             # estimate since the run began)
         self._pool_list: list[Keyframe] | None = None
@@ -582,11 +588,12 @@ class FlyLocaliser:
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps, T_map_base (N, 4, 4)) of every estimate, re-expressed in the current (optimised) poses
         of the keyframes around it: the one newest when it was made and the next one made on the same
-        run of estimates, blended by time between the two.  After a loop closure this is the corrected
-        trajectory, with no step where one keyframe's correction hands over to the next's.  A run ends
-        at a relocalisation or a loaded map: no estimate follows a keyframe made after its run, and the
-        newest estimates follow their keyframe alone.  Vectorised per keyframe: the live localiser
-        rewrites the whole trajectory every few seconds."""
+        run of estimates, blended by the share of the way between the two the robot had come (driven
+        and turned, :meth:`_motion`, step by step: a robot that waits or turns back keeps its share).
+        After a loop closure this is the corrected trajectory, with no step where one keyframe's
+        correction hands over to the next's.  A run ends at a relocalisation or a loaded map: no
+        estimate follows a keyframe made after its run, and the newest estimates follow their keyframe
+        alone.  Vectorised: the live localiser rewrites the whole trajectory every few seconds."""
         if not self._history:
             return np.zeros(0, np.int64), np.zeros((0, 4, 4))
         stamp_list, anchors, rel_list = zip(*self._history)
@@ -594,22 +601,40 @@ class FlyLocaliser:
         rel = np.array(rel_list, dtype=float)
         ids = np.array([-1 if kf is None else kf.id for kf in anchors], np.int64)
         firsts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+        lasts = np.r_[firsts[1:], len(ids)] - 1
+        group = np.repeat(np.arange(len(firsts)), lasts - firsts + 1)
         # per group of consecutive estimates on one keyframe: that keyframe's pose, the pose the next
-        # keyframe gives them, and the stamps the blend goes between (none when start >= end)
-        own_kf, via_kf = np.tile(np.eye(4), (len(firsts), 1, 1)), np.tile(np.eye(4), (len(firsts), 1, 1))
-        start, end = np.zeros(len(firsts), np.int64), np.zeros(len(firsts), np.int64)
+        # keyframe gives them, the next keyframe relative to it as made, and the stamp the blend starts
+        # at (never, without a next keyframe)
+        own_kf, via_kf, to_next = (np.tile(np.eye(4), (len(firsts), 1, 1)) for _ in range(3))
+        start = np.full(len(firsts), np.iinfo(np.int64).max)
         for g, first in enumerate(firsts):
             kf = anchors[first]
             if kf is None:
                 continue
             own_kf[g] = via_kf[g] = kf.T_map_base
             if kf.id in self._next_in_chain:
-                kf_next, T_next_kf, start[g], end[g] = self._next_in_chain[kf.id]
+                kf_next, T_next_kf, to_next[g], start[g] = self._next_in_chain[kf.id]
                 via_kf[g] = kf_next.T_map_base @ T_next_kf
-        group = np.repeat(np.arange(len(firsts)), np.diff(np.r_[firsts, len(ids)]))
-        span = (end - start)[group]
-        share = np.clip((stamps - start[group]) / np.where(span > 0, span, 1.0), 0.0, 1.0) * (span > 0)
+        # the way come since the run's first estimate on the keyframe, against the whole way to the next
+        moving = stamps > start[group]
+        step = np.zeros(len(ids))
+        step[1:] = self._motion(_between(rel[:-1], rel[1:]))
+        step[~moving] = 0.0
+        step[firsts] = 0.0
+        come = np.cumsum(step)
+        come -= come[firsts][group]
+        way = (come[lasts] + self._motion(_between(rel[lasts], to_next)))[group]
+        share = np.where(moving & (way > 0), np.clip(come / np.where(way > 0, way, 1.0), 0.0, 1.0), 0.0)
         return stamps, _blend(own_kf[group] @ rel, via_kf[group] @ rel, share)
+
+    def _motion(self, rel: np.ndarray) -> np.ndarray:
+        """How far poses (N, 4, 4) are from the identity, in keyframe spacings: metres over
+        ``keyframe_distance_m`` plus angle over ``keyframe_angle_rad`` (the front end drifts while it
+        turns on the spot as well as while it drives)."""
+        c = self.config
+        angle = np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+        return np.linalg.norm(rel[:, :3, 3], axis=1) / c.keyframe_distance_m + angle / c.keyframe_angle_rad
 
     def relocalised(self, stamp_ns: int, T_map_base: np.ndarray, T_odom_base: np.ndarray | None = None) -> None:
         """Restart tracking from a pose found by a global search over the map (relocalisation): the
@@ -736,9 +761,10 @@ class FlyLocaliser:
                                         view_flies[2] if view_flies is not None else None)
                 if prev is not None:
                     since = self._anchor_since
+                    T_next_prev = invert(T_map_base) @ prev.T_map_base
                     self._next_in_chain[prev.id] = (
-                        kf, invert(T_map_base) @ prev.T_map_base,
-                        since[1] if since is not None and since[0] == prev.id else stamp_ns, stamp_ns)
+                        kf, T_next_prev, invert(T_next_prev),
+                        since[1] if since is not None and since[0] == prev.id else stamp_ns)
                 added = True
                 if self.backend is not None:
                     C = self._graph_keyframe(kf, list(links) if registered else [], cov if registered else None)
