@@ -183,7 +183,7 @@ def test_a_robot_that_waits_between_keyframes_hardly_slides_when_they_are_correc
 def test_estimates_before_a_relocalisation_do_not_follow_the_keyframes_made_after_it():
     """A relocalisation starts a new run of estimates: keyframes made after it, corrected by the graph,
     move the estimates made since the relocalisation (those before the first new keyframe by their share
-    of the time to it) and none made before it."""
+    of the way to it) and none made before it."""
     rng = np.random.default_rng(5)
     world = ring_points(rng, 20000)
     loc = FlyLocaliser(T_BASE_CAMERA, LocaliserConfig(min_generations=0, loop_closure=False))

@@ -181,9 +181,9 @@ class FlyLocaliser:
         self._history: list[tuple[int, Keyframe | None, np.ndarray]] = []
         # keyframe id -> the keyframe made next on the same run of estimates (a run ends at a
         # relocalisation or a loaded map): (next keyframe, this one's pose relative to it when it was made,
-        # and the inverse, stamp of this one's first estimate in that run); trajectory() blends the two
-        # keyframes' corrections over the estimates from that stamp to the next keyframe
-        self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, np.ndarray, int]] = {}
+        # stamp of this one's first estimate in that run); trajectory() blends the two keyframes'
+        # corrections over the estimates from that stamp to the next keyframe
+        self._next_in_chain: dict[int, tuple[Keyframe, np.ndarray, int]] = {}
         self._anchor_since: tuple[int, int] | None = None   # (newest keyframe id, stamp of its first
                                                             # estimate since the run began)
         self._pool_list: list[Keyframe] | None = None
@@ -604,9 +604,9 @@ class FlyLocaliser:
         lasts = np.r_[firsts[1:], len(ids)] - 1
         group = np.repeat(np.arange(len(firsts)), lasts - firsts + 1)
         # per group of consecutive estimates on one keyframe: that keyframe's pose, the pose the next
-        # keyframe gives them, the next keyframe relative to it as made, and the stamp the blend starts
+        # keyframe gives them, the keyframe relative to the next as made, and the stamp the blend starts
         # at (never, without a next keyframe)
-        own_kf, via_kf, to_next = (np.tile(np.eye(4), (len(firsts), 1, 1)) for _ in range(3))
+        own_kf, via_kf, in_next = (np.tile(np.eye(4), (len(firsts), 1, 1)) for _ in range(3))
         start = np.full(len(firsts), np.iinfo(np.int64).max)
         for g, first in enumerate(firsts):
             kf = anchors[first]
@@ -614,8 +614,8 @@ class FlyLocaliser:
                 continue
             own_kf[g] = via_kf[g] = kf.T_map_base
             if kf.id in self._next_in_chain:
-                kf_next, T_next_kf, to_next[g], start[g] = self._next_in_chain[kf.id]
-                via_kf[g] = kf_next.T_map_base @ T_next_kf
+                kf_next, in_next[g], start[g] = self._next_in_chain[kf.id]
+                via_kf[g] = kf_next.T_map_base @ in_next[g]
         # the way come since the run's first estimate on the keyframe, against the whole way to the next
         moving = stamps > start[group]
         step = np.zeros(len(ids))
@@ -624,7 +624,7 @@ class FlyLocaliser:
         step[firsts] = 0.0
         come = np.cumsum(step)
         come -= come[firsts][group]
-        way = (come[lasts] + self._motion(_between(rel[lasts], to_next)))[group]
+        way = (come[lasts] + self._motion(in_next @ rel[lasts]))[group]     # (a motion and its inverse: as far)
         share = np.where(moving & (way > 0), np.clip(come / np.where(way > 0, way, 1.0), 0.0, 1.0), 0.0)
         return stamps, _blend(own_kf[group] @ rel, via_kf[group] @ rel, share)
 
@@ -761,9 +761,8 @@ class FlyLocaliser:
                                         view_flies[2] if view_flies is not None else None)
                 if prev is not None:
                     since = self._anchor_since
-                    T_next_prev = invert(T_map_base) @ prev.T_map_base
                     self._next_in_chain[prev.id] = (
-                        kf, T_next_prev, invert(T_next_prev),
+                        kf, invert(T_map_base) @ prev.T_map_base,
                         since[1] if since is not None and since[0] == prev.id else stamp_ns)
                 added = True
                 if self.backend is not None:
